@@ -1,0 +1,21 @@
+"""Exceptions raised by lcpr_core; every message names the bad value and what is accepted."""
+
+
+class LcprError(Exception):
+    """Base class of every error raised by lcpr_core."""
+
+
+class CheckpointError(LcprError):
+    """A weights file cannot be read or does not fit the model."""
+
+
+class InputShapeError(LcprError, ValueError):
+    """A tensor or array handed to a model or preprocessing step has the wrong shape."""
+
+
+class MapError(LcprError):
+    """A descriptor map cannot be used, saved or loaded."""
+
+
+class MapSchemaError(MapError):
+    """A saved descriptor map does not match the map it is loaded into (dimension, model)."""

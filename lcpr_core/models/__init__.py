@@ -1,0 +1,4 @@
+"""Network modules."""
+from .lcpr import LCPR, LcprOutput
+
+__all__ = ["LCPR", "LcprOutput"]

@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# Sets up .venv in the repository root: CPU PyTorch (pinned), the package in editable
+# mode, its test tools, and ROS 2 from PyPI when no system ROS 2 (rclpy) is present.
+# Safe to run again; it only installs what is missing.
+set -euo pipefail
+cd "$(dirname "${BASH_SOURCE[0]}")/.."
+PYTHON=${PYTHON:-python3}
+
+if "$PYTHON" -c "import rclpy" 2>/dev/null; then
+  echo "setup: using the system ROS 2 (rclpy found); .venv sees system site-packages"
+  venv_flags=(--system-site-packages)
+  extras="test"
+else
+  echo "setup: no system ROS 2 found; installing the ROS 2 wheels from PyPI into .venv"
+  venv_flags=()
+  extras="ros,test"
+fi
+
+[ -x .venv/bin/python ] || "$PYTHON" -m venv "${venv_flags[@]}" .venv
+pip=(.venv/bin/python -m pip install --quiet --disable-pip-version-check)
+# torch first and pinned: an unpinned torch pulls several GB of CUDA packages.
+"${pip[@]}" "torch==2.13.0"
+"${pip[@]}" -e ".[${extras}]"
+echo "setup: done ($(.venv/bin/python -c 'import torch, faiss; print("torch", torch.__version__, "faiss", faiss.__version__)'))"

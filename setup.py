@@ -1,0 +1,43 @@
+"""Install with pip (`pip install -e .[ros,test]`) or build with colcon (ament_python)."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "lcpr_loop_closure"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    description="Learned loop-closure detection (LCPR, VSeq2PC) for ROS 2 SLAM stacks",
+    license="MIT",
+    python_requires=">=3.10",
+    packages=find_packages(include=["lcpr_core", "lcpr_core.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+    ],
+    install_requires=[
+        # Pinned: an unpinned torch pulls several GB of CUDA packages onto CPU machines.
+        "torch==2.13.0",
+        "numpy>=1.24",
+        "pillow>=10",
+        "faiss-cpu>=1.8",
+        "matplotlib>=3.7",
+        "tqdm>=4.60",
+        "pyyaml>=6",
+    ],
+    extras_require={
+        # ROS 2 from PyPI for machines without a ROS installation; a vehicle with
+        # ROS 2 Jazzy from apt uses its system rclpy instead.
+        "ros": ["ros-rclpy", "ros-common-interfaces", "ros-std-srvs", "ros-rmw-fastrtps-cpp"],
+        "test": ["pytest>=7", "hypothesis>=6"],
+    },
+    zip_safe=True,
+    tests_require=["pytest"],
+    entry_points={
+        "console_scripts": [
+            "lcpr_demo = lcpr_core.demo:main",
+        ],
+    },
+)

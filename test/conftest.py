@@ -1,0 +1,44 @@
+"""Shared fixtures: the reference material and real frames in ../shared beside the checkout."""
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def shared_dir() -> Path | None:
+    for candidate in (os.environ.get("LCPR_SHARED_DIR"), REPO.parent / "shared", REPO / "shared"):
+        if candidate and (Path(candidate) / "reference").is_dir():
+            return Path(candidate)
+    return None
+
+
+@pytest.fixture(scope="session")
+def shared() -> Path:
+    found = shared_dir()
+    if found is None:
+        message = "../shared (reference vectors and real frames) not found beside the checkout; set LCPR_SHARED_DIR"
+        if os.environ.get("CI"):
+            pytest.fail(message)
+        pytest.skip(message)
+    return found
+
+
+@pytest.fixture(scope="session")
+def detweights(shared: Path):
+    """The authors' deterministic-weights module (reference material, not project code)."""
+    sys.path.insert(0, str(shared / "reference"))
+    try:
+        import detweights as module
+    finally:
+        sys.path.pop(0)
+    return module
+
+
+@pytest.fixture(scope="session")
+def nuscenes_sample(shared: Path) -> Path:
+    return shared / "data" / "nuscenes_sample"
