@@ -11,7 +11,7 @@ setup(
     description="Learned loop-closure detection (LCPR, VSeq2PC) for ROS 2 SLAM stacks",
     license="MIT",
     python_requires=">=3.10",
-    packages=find_packages(include=["lcpr_core", "lcpr_core.*"]),
+    packages=find_packages(include=["lcpr_core", "lcpr_core.*", "msg_tools", "msg_tools.*"]),
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
@@ -26,6 +26,7 @@ setup(
         "matplotlib>=3.7",
         "tqdm>=4.60",
         "pyyaml>=6",
+        "rosbags>=0.10",
     ],
     extras_require={
         # ROS 2 from PyPI for machines without a ROS installation; a vehicle with
@@ -38,6 +39,9 @@ setup(
     entry_points={
         "console_scripts": [
             "lcpr_demo = lcpr_core.demo:main",
+            "msg_tools_nuscenes2bag = msg_tools.convert.nuscenes:main",
+            "msg_tools_kitti2bag = msg_tools.convert.kitti:main",
+            "msg_tools_baginfo = msg_tools.convert.baginfo:main",
         ],
     },
 )

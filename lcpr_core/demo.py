@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import sys
 from pathlib import Path
@@ -58,8 +59,8 @@ def main(argv: list[str] | None = None) -> int:
     images, points = files.read()
     config = ModelConfig(weights=args.weights, imagenet=args.imagenet, seed=args.seed, threads=args.threads)
     fp32 = Describer(config)
-    bf16 = Describer(ModelConfig(**{**config.__dict__, "precision": "bf16"}), model=fp32.model)
-    fast = Describer(ModelConfig(**{**config.__dict__, "fast_decode": True}), model=fp32.model)
+    bf16 = Describer(dataclasses.replace(config, precision="bf16"), model=fp32.model)
+    fast = Describer(dataclasses.replace(config, fast_decode=True), model=fp32.model)
     weights = args.weights or args.imagenet or f"seeded random initialisation (seed {args.seed}), NOT a trained model"
 
     print(f"\nLCPR descriptor demo on {data}")

@@ -1,0 +1,583 @@
+"""A growing map of place descriptors backed by FAISS, with per-entry metadata.
+
+Memory: the descriptors are held once, inside the FAISS index (N * D * 4 bytes;
+~1.02 GB for 1M x 256). Metadata costs 44 bytes per entry (id 8, stamp 8, pose 24,
+source code 4) in numpy arrays grown by doubling, so up to twice that while
+growing. "hnsw" adds its graph (~2 * hnsw_m * 4 bytes per entry, ~0.3 GB for 1M at
+m=32). ``descriptors`` returns a copy; everything else reads FAISS storage in place.
+
+Distances are Euclidean (L2, not squared), computed by FAISS in float32.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import faiss
+import numpy as np
+from numpy.typing import ArrayLike
+
+from .atomic import atomic_path
+from .errors import MapError, MapSchemaError
+
+__all__ = ["MapConfig", "Match", "DescriptorMap", "INDEX_TYPES", "SCHEMA_VERSION"]
+
+INDEX_TYPES: tuple[str, ...] = ("flat", "hnsw")
+SCHEMA_VERSION = 1
+_FORMAT = "lcpr_core.descriptor_map"
+_NPZ_KEYS = ("header", "descriptors", "ids", "stamps", "poses", "source_codes")
+# A filtered search over at most this many allowed rows is done exactly (brute force).
+_EXACT_FALLBACK_ROWS = 16384
+
+@dataclass(frozen=True)
+class MapConfig:
+    """Descriptor size, producing model and search structure of a map.
+
+    index: "flat" (exact L2) or "hnsw" (approximate, faiss.IndexHNSWFlat).
+    The hnsw_* fields only matter for "hnsw".
+    """
+
+    dim: int = 256
+    model: str = "lcpr"
+    index: str = "flat"
+    hnsw_m: int = 32
+    hnsw_ef_search: int = 128
+    hnsw_ef_construction: int = 200
+
+    def __post_init__(self) -> None:
+        if self.index not in INDEX_TYPES:
+            raise MapError(f"index {self.index!r} is not supported; accepted: {', '.join(INDEX_TYPES)}")
+        for name in ("dim", "hnsw_m", "hnsw_ef_search", "hnsw_ef_construction"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise MapError(f"{name}={value!r} is not accepted; it must be a positive integer")
+        if not isinstance(self.model, str) or not self.model:
+            raise MapError(f"model={self.model!r} is not accepted; it must be a non-empty string")
+
+    def index_params(self) -> dict[str, Any]:
+        """The index type and its parameters, as stored in a map file."""
+        params: dict[str, Any] = {"index": self.index}
+        if self.index == "hnsw":
+            params.update(m=self.hnsw_m, ef_search=self.hnsw_ef_search, ef_construction=self.hnsw_ef_construction)
+        return params
+
+
+@dataclass(frozen=True)
+class Match:
+    """One search hit. ``distance`` is the Euclidean (not squared) L2 distance;
+    ``pose`` is None when the entry has no pose; ``rank`` counts from 0."""
+
+    id: int
+    distance: float
+    stamp: float
+    pose: tuple[float, float, float] | None
+    source: str
+    rank: int
+
+
+class _Column:
+    """A numpy array that grows by amortised doubling; ``view()`` shows the filled rows."""
+
+    def __init__(self, dtype: type | np.dtype, width: tuple[int, ...] = ()) -> None:
+        self._data = np.empty((16, *width), dtype=dtype)
+        self._n = 0
+
+    def __len__(self) -> int:
+        return self._n
+
+    def extend(self, values: np.ndarray) -> None:
+        need = self._n + len(values)
+        if need > len(self._data):
+            grown = np.empty((max(need, 2 * len(self._data)), *self._data.shape[1:]), dtype=self._data.dtype)
+            grown[: self._n] = self._data[: self._n]
+            self._data = grown
+        self._data[self._n : need] = values
+        self._n = need
+
+    def view(self) -> np.ndarray:
+        """Read-only view of the filled rows (a snapshot: later appends don't show)."""
+        out = self._data[: self._n]
+        out.flags.writeable = False
+        return out
+
+
+class DescriptorMap:
+    """Place descriptors (N x D float32) with id, stamp, pose and source per entry.
+
+    Ids are int64, assigned consecutively from max id + 1 (0 for an empty map)
+    unless given; they survive save/load. Entries are never removed.
+    Not thread-safe: share one map between threads behind a lock.
+    """
+
+    def __init__(self, config: MapConfig | None = None) -> None:
+        self._config = config if config is not None else MapConfig()
+        self._index, self._storage = _make_index(self._config)
+        self._ef_search = self._config.hnsw_ef_search
+        self._ids = _Column(np.int64)
+        self._stamps = _Column(np.float64)
+        self._poses = _Column(np.float64, (3,))
+        self._source_codes = _Column(np.int32)
+        self._source_names: list[str] = []
+        self._source_lookup: dict[str, int] = {}
+        self._next_id = 0
+        self._ids_increasing = True  # ids strictly increasing in insertion order
+        self._stamps_sorted = True  # stamps non-decreasing in insertion order
+
+    # ------------------------------------------------------------------ accessors
+    @property
+    def config(self) -> MapConfig:
+        return dataclasses.replace(self._config, hnsw_ef_search=self._ef_search)
+
+    @property
+    def dim(self) -> int:
+        return self._config.dim
+
+    def __len__(self) -> int:
+        return len(self._ids)
+
+    def __repr__(self) -> str:
+        return f"DescriptorMap({len(self)} x {self.dim}-d {self._config.model!r}, index={self._config.index!r})"
+
+    @property
+    def ids(self) -> np.ndarray:
+        """(N,) int64, read-only."""
+        return self._ids.view()
+
+    @property
+    def stamps(self) -> np.ndarray:
+        """(N,) float64 seconds, read-only."""
+        return self._stamps.view()
+
+    @property
+    def poses(self) -> np.ndarray:
+        """(N, 3) float64 x, y, z; NaN rows where no pose was given. Read-only."""
+        return self._poses.view()
+
+    @property
+    def sources(self) -> list[str]:
+        """Source name per entry (builds a Python list; O(N))."""
+        names = self._source_names
+        return [names[c] for c in self._source_codes.view().tolist()]
+
+    @property
+    def descriptors(self) -> np.ndarray:
+        """(N, D) float32 copy of the stored descriptors."""
+        return self._xb().copy()
+
+    def set_ef_search(self, ef_search: int) -> None:
+        """Change the HNSW search breadth (speed/recall trade-off) of this map."""
+        if isinstance(ef_search, bool) or not isinstance(ef_search, (int, np.integer)) or ef_search < 1:
+            raise MapError(f"ef_search={ef_search!r} is not accepted; it must be a positive integer")
+        self._ef_search = int(ef_search)
+
+    # ------------------------------------------------------------------ adding
+    def add(
+        self,
+        descriptors: ArrayLike,
+        *,
+        stamps: float | ArrayLike,
+        poses: ArrayLike | None = None,
+        sources: str | Sequence[str] | None = None,
+        ids: int | ArrayLike | None = None,
+    ) -> np.ndarray:
+        """Append one (D,) or many (N, D) descriptors; returns their (N,) int64 ids.
+
+        stamps: (N,) seconds (a float for one descriptor). poses: (N, 3) or (3,),
+        NaN for unknown. sources: one name for all, or one per entry. ids: (N,)
+        non-negative, unique and not yet in the map; default max id + 1 onwards.
+        """
+        x = self._check_vectors(descriptors, "descriptors")  # (N, D)
+        n = len(x)
+        t = _check_stamps(stamps, n)  # (N,)
+        p = _check_poses(poses, n)  # (N, 3)
+        src = _check_sources(sources, n)
+        new_ids = self._check_new_ids(ids, n)  # (N,)
+        if n == 0:
+            return new_ids
+        codes = np.fromiter((self._source_code(s) for s in src), dtype=np.int32, count=n)
+
+        last = self._stamps.view()[-1] if len(self) else -math.inf
+        self._stamps_sorted = self._stamps_sorted and t[0] >= last and bool(np.all(np.diff(t) >= 0))
+        if self._ids_increasing:
+            prev = self._ids.view()[-1] if len(self) else -1
+            self._ids_increasing = new_ids[0] > prev and bool(np.all(np.diff(new_ids) > 0))
+
+        self._index.add(x)
+        self._ids.extend(new_ids)
+        self._stamps.extend(t)
+        self._poses.extend(p)
+        self._source_codes.extend(codes)
+        self._next_id = max(self._next_id, int(new_ids.max()) + 1)
+        return new_ids.copy()
+
+    def _source_code(self, name: str) -> int:
+        code = self._source_lookup.get(name)
+        if code is None:
+            code = len(self._source_names)
+            self._source_names.append(name)
+            self._source_lookup[name] = code
+        return code
+
+    def _check_vectors(self, values: ArrayLike, what: str) -> np.ndarray:
+        try:
+            arr = np.asarray(values)
+        except (TypeError, ValueError) as err:
+            raise MapError(f"{what} cannot be read as an array of floats: {err}") from err
+        d = self.dim
+        if arr.ndim not in (1, 2) or arr.shape[-1] != d:
+            raise MapError(f"{what} of shape {tuple(arr.shape)} do not fit this map; expected ({d},) or (N, {d})")
+        if arr.dtype.kind != "f":
+            raise MapError(f"{what} have dtype {arr.dtype}; expected a floating dtype (float16/32/64)")
+        arr = np.ascontiguousarray(arr.reshape(-1, d), dtype=np.float32)
+        if not np.isfinite(arr).all():
+            bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
+            raise MapError(f"{what} rows {bad[:5].tolist()} contain NaN or inf (after casting to float32)")
+        return arr
+
+    def _check_new_ids(self, ids: int | ArrayLike | None, n: int) -> np.ndarray:
+        if ids is None:
+            return np.arange(self._next_id, self._next_id + n, dtype=np.int64)
+        arr = np.asarray(ids)
+        if arr.ndim == 0 and n == 1:
+            arr = arr.reshape(1)
+        if arr.shape != (n,):
+            raise MapError(f"ids of shape {tuple(arr.shape)} do not fit {n} descriptors; expected ({n},)")
+        if arr.dtype.kind not in "iu":
+            raise MapError(f"ids have dtype {arr.dtype}; expected an integer dtype")
+        arr = arr.astype(np.int64)
+        if n == 0:
+            return arr
+        if arr.min() < 0:
+            raise MapError(f"id {int(arr.min())} is negative; ids must be >= 0")
+        uniq, counts = np.unique(arr, return_counts=True)
+        if len(uniq) != n:
+            raise MapError(f"ids given to add() repeat (e.g. {int(uniq[counts > 1][0])}); ids must be unique")
+        existing = self._ids.view()
+        if len(existing) and not (self._ids_increasing and uniq[0] > existing[-1]):
+            taken = uniq[np.isin(uniq, existing)]
+            if len(taken):
+                raise MapError(f"ids {taken[:5].tolist()} are already in the map; ids must be unique")
+        return arr
+
+    # ------------------------------------------------------------------ search
+    def search(
+        self,
+        query: ArrayLike,
+        *,
+        k: int = 20,
+        exclude_after: float | ArrayLike | None = None,
+        max_distance: float | None = None,
+    ) -> list[Match] | list[list[Match]]:
+        """Nearest entries to one (D,) query -> list[Match], or to (Q, D) -> list[list[Match]].
+
+        exclude_after: entries with stamp > exclude_after are skipped (pass
+        query_stamp - window); a float for all queries or one per query (Q,).
+        max_distance: drop hits farther than this (L2). Hits are sorted by
+        distance, at most k per query, fewer if the map (or window) is smaller.
+        """
+        single = np.ndim(query) == 1
+        q = self._check_vectors(query, "query")  # (Q, D)
+        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
+            raise MapError(f"k={k!r} is not accepted; it must be a positive integer")
+        if max_distance is not None and not (max_distance >= 0):
+            raise MapError(f"max_distance={max_distance!r} is not accepted; it must be >= 0 or None")
+        windows = _check_windows(exclude_after, len(q))
+        if windows is None or windows.ndim == 0:
+            after = None if windows is None else float(windows)
+            dist, pos = self._search_block(q, int(k), after)
+        else:
+            blocks = [self._search_block(q[i : i + 1], int(k), float(w)) for i, w in enumerate(windows)]
+            dist = np.concatenate([b[0] for b in blocks]) if blocks else np.empty((0, k), np.float32)
+            pos = np.concatenate([b[1] for b in blocks]) if blocks else np.empty((0, k), np.int64)
+        results = [self._matches(dist[i], pos[i], max_distance) for i in range(len(q))]
+        return results[0] if single else results
+
+    def _search_block(self, q: np.ndarray, k: int, after: float | None) -> tuple[np.ndarray, np.ndarray]:
+        """Squared distances and row positions (Q, k), position -1 where empty."""
+        n = len(self)
+        empty = (np.full((len(q), k), np.inf, np.float32), np.full((len(q), k), -1, np.int64))
+        if n == 0:
+            return empty
+        if after is None:
+            return self._index_search(q, k, None)
+        stamps = self._stamps.view()
+        if self._stamps_sorted:
+            end = int(np.searchsorted(stamps, after, side="right"))  # rows [0, end) allowed
+            if end == 0:
+                return empty
+            if end == n:
+                return self._index_search(q, k, None)
+            if self._config.index == "flat" or end <= _EXACT_FALLBACK_ROWS:
+                return _exact(q, self._xb()[:end], k, None)
+            return self._index_search(q, k, faiss.IDSelectorRange(0, end))
+        # Stamps out of order: select allowed rows with a bitmap (O(N) per search).
+        allowed = stamps <= after
+        count = int(allowed.sum())
+        if count == 0:
+            return empty
+        if count == n:
+            return self._index_search(q, k, None)
+        if self._config.index == "hnsw" and count <= _EXACT_FALLBACK_ROWS:
+            rows = np.flatnonzero(allowed)
+            return _exact(q, self._xb()[rows], k, rows)
+        bitmap = np.packbits(allowed, bitorder="little")  # kept alive for the selector
+        return self._index_search(q, k, faiss.IDSelectorBitmap(n, faiss.swig_ptr(bitmap)))
+
+    def _index_search(self, q: np.ndarray, k: int, sel: Any) -> tuple[np.ndarray, np.ndarray]:
+        if self._config.index == "hnsw":
+            params = faiss.SearchParametersHNSW(efSearch=max(self._ef_search, k))
+            if sel is not None:
+                params.sel = sel
+            return self._index.search(q, k, params=params)
+        if sel is None:
+            return self._index.search(q, k)
+        return self._index.search(q, k, params=faiss.SearchParameters(sel=sel))
+
+    def _matches(self, dist2: np.ndarray, pos: np.ndarray, max_distance: float | None) -> list[Match]:
+        keep = pos >= 0
+        dist = np.sqrt(np.maximum(dist2[keep], 0.0)).astype(np.float64)
+        pos = pos[keep]
+        order = np.argsort(dist, kind="stable")  # faiss already sorts; make sure
+        dist, pos = dist[order], pos[order]
+        if max_distance is not None:
+            inside = dist <= max_distance
+            dist, pos = dist[inside], pos[inside]
+        ids = self._ids.view()[pos].tolist()
+        stamps = self._stamps.view()[pos].tolist()
+        poses = self._poses.view()[pos]
+        codes = self._source_codes.view()[pos].tolist()
+        out = []
+        for rank, (i, d, s, p, c) in enumerate(zip(ids, dist.tolist(), stamps, poses, codes)):
+            pose = None if np.isnan(p).all() else (float(p[0]), float(p[1]), float(p[2]))
+            out.append(Match(id=i, distance=d, stamp=s, pose=pose, source=self._source_names[c], rank=rank))
+        return out
+
+    def _xb(self) -> np.ndarray:
+        """(N, D) view of FAISS storage; invalid after the next add(), internal use only."""
+        n = len(self)
+        if n == 0:
+            return np.empty((0, self.dim), np.float32)
+        return faiss.rev_swig_ptr(self._storage.get_xb(), n * self.dim).reshape(n, self.dim)
+
+    # ------------------------------------------------------------------ files
+    def save(self, path: str | os.PathLike[str]) -> None:
+        """Write the map to one .npz (no pickle), atomically: on failure the old file stays."""
+        header = {
+            "format": _FORMAT,
+            "schema_version": SCHEMA_VERSION,
+            "dim": self.dim,
+            "model": self._config.model,
+            **self.config.index_params(),
+            "count": len(self),
+            "sources": self._source_names,
+        }
+        arrays = {
+            "header": np.array(json.dumps(header)),
+            "descriptors": self._xb(),
+            "ids": self._ids.view(),
+            "stamps": self._stamps.view(),
+            "poses": self._poses.view(),
+            "source_codes": self._source_codes.view(),
+        }
+        try:
+            with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+                np.savez(fh, **arrays)  # file handle: numpy must not append ".npz"
+        except OSError as err:
+            raise MapError(f"cannot save descriptor map to {os.fspath(path)}: {err}") from err
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str], *, expect: MapConfig | None = None) -> DescriptorMap:
+        """Read a map written by save() and rebuild its index (the file is only read).
+
+        With ``expect``, the file's dim and model must equal expect's (else
+        MapSchemaError) and the index is built as ``expect`` says; without it, as
+        the file says.
+        """
+        where = os.fspath(path)
+        data = _read_npz(where)
+        header = _parse_header(data["header"], where)
+        file_dim, file_model = header["dim"], header["model"]
+        if expect is not None and (expect.dim != file_dim or expect.model != file_model):
+            raise MapSchemaError(
+                f"map file {where} holds {file_dim}-d {file_model!r} descriptors; "
+                f"this detector makes {expect.dim}-d {expect.model!r} descriptors"
+            )
+        config = expect if expect is not None else _config_from_header(header, where)
+        x, ids, stamps, poses, codes = _check_arrays(data, header, where)
+
+        out = cls(config)
+        if len(x):
+            out._index.add(x)
+        out._ids.extend(ids)
+        out._stamps.extend(stamps)
+        out._poses.extend(poses)
+        out._source_codes.extend(codes)
+        out._source_names = list(header["sources"])
+        out._source_lookup = {name: i for i, name in enumerate(out._source_names)}
+        out._next_id = int(ids.max()) + 1 if len(ids) else 0
+        out._ids_increasing = bool(np.all(np.diff(ids) > 0))
+        out._stamps_sorted = bool(np.all(np.diff(stamps) >= 0))
+        return out
+
+
+# ---------------------------------------------------------------------- helpers
+def _make_index(config: MapConfig) -> tuple[Any, Any]:
+    """The FAISS index and the IndexFlat that stores its vectors."""
+    if config.index == "hnsw":
+        index = faiss.IndexHNSWFlat(config.dim, config.hnsw_m)
+        index.hnsw.efConstruction = config.hnsw_ef_construction
+        index.hnsw.efSearch = config.hnsw_ef_search
+        return index, faiss.downcast_index(index.storage)
+    index = faiss.IndexFlatL2(config.dim)
+    return index, index
+
+
+def _exact(q: np.ndarray, xb: np.ndarray, k: int, rows: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Brute-force k-NN over xb; ``rows`` maps xb rows back to map rows."""
+    kk = min(k, len(xb))
+    dist, pos = faiss.knn(q, xb, kk)
+    if rows is not None:
+        pos = np.where(pos >= 0, rows[np.maximum(pos, 0)], -1)
+    if kk < k:
+        dist = np.pad(dist, ((0, 0), (0, k - kk)), constant_values=np.inf)
+        pos = np.pad(pos, ((0, 0), (0, k - kk)), constant_values=-1)
+    return dist, pos
+
+
+def _check_stamps(stamps: float | ArrayLike, n: int) -> np.ndarray:
+    arr = np.asarray(stamps)
+    if arr.ndim == 0 and n == 1:
+        arr = arr.reshape(1)
+    if arr.shape != (n,):
+        raise MapError(f"stamps of shape {tuple(np.shape(arr))} do not fit {n} descriptors; expected ({n},)")
+    if arr.dtype.kind not in "fiu":
+        raise MapError(f"stamps have dtype {arr.dtype}; expected float seconds")
+    arr = arr.astype(np.float64)
+    if not np.isfinite(arr).all():
+        raise MapError(f"stamps {arr[~np.isfinite(arr)][:5].tolist()} are not finite; expected finite seconds")
+    return arr
+
+
+def _check_poses(poses: ArrayLike | None, n: int) -> np.ndarray:
+    if poses is None:
+        return np.full((n, 3), np.nan)
+    try:
+        arr = np.asarray(poses, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise MapError(f"poses cannot be read as (N, 3) floats: {err}") from err
+    if arr.shape == (3,) and n == 1:
+        arr = arr.reshape(1, 3)
+    if arr.shape != (n, 3):
+        raise MapError(f"poses of shape {arr.shape} do not fit {n} descriptors; expected ({n}, 3) x, y, z")
+    if np.isinf(arr).any():
+        raise MapError("poses contain inf; expected finite x, y, z or NaN for unknown")
+    return arr
+
+
+def _check_sources(sources: str | Sequence[str] | None, n: int) -> list[str]:
+    if sources is None:
+        return [""] * n
+    if isinstance(sources, str):
+        return [sources] * n
+    out = list(sources)
+    if len(out) != n:
+        raise MapError(f"{len(out)} sources given for {n} descriptors; expected one string or {n}")
+    bad = [s for s in out if not isinstance(s, str)]
+    if bad:
+        raise MapError(f"source {bad[0]!r} is not a string; sources must be str")
+    return out
+
+
+def _check_windows(exclude_after: float | ArrayLike | None, q: int) -> np.ndarray | None:
+    if exclude_after is None:
+        return None
+    try:
+        arr = np.asarray(exclude_after, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise MapError(f"exclude_after={exclude_after!r} is not accepted; expected a stamp or one per query") from err
+    if arr.ndim != 0 and arr.shape != (q,):
+        raise MapError(f"exclude_after of shape {arr.shape} does not fit {q} queries; expected a float or ({q},)")
+    if np.isnan(arr).any():
+        raise MapError("exclude_after is NaN; expected a stamp in seconds (inf allowed)")
+    return arr
+
+
+def _read_npz(where: str) -> dict[str, np.ndarray]:
+    try:
+        npz = np.load(where, allow_pickle=False, mmap_mode=None)
+    except FileNotFoundError as err:
+        raise MapError(f"map file {where} does not exist") from err
+    except Exception as err:  # noqa: BLE001 - OSError, BadZipFile, ValueError (pickle), EOFError, ...
+        raise MapError(f"map file {where} cannot be read as a descriptor map (.npz): {type(err).__name__}: {err}") from err
+    if not isinstance(npz, np.lib.npyio.NpzFile):
+        raise MapError(f"map file {where} is not an .npz archive (found a single .npy array)")
+    try:
+        with npz:
+            missing = [key for key in _NPZ_KEYS if key not in npz.files]
+            if missing:
+                raise MapError(f"map file {where} lacks {', '.join(missing)}; expected arrays {', '.join(_NPZ_KEYS)}")
+            return {key: npz[key] for key in _NPZ_KEYS}
+    except MapError:
+        raise
+    except Exception as err:  # noqa: BLE001 - zipfile/numpy raise many kinds on damaged archives
+        raise MapError(f"map file {where} cannot be read as a descriptor map (.npz): {type(err).__name__}: {err}") from err
+
+
+def _parse_header(raw: np.ndarray, where: str) -> dict[str, Any]:
+    try:
+        header = json.loads(str(raw.item()))
+    except (ValueError, TypeError) as err:
+        raise MapError(f"map file {where} has an unreadable header: {err}") from err
+    if not isinstance(header, dict) or header.get("format") != _FORMAT:
+        raise MapError(f"map file {where} is not a {_FORMAT} file")
+    version = header.get("schema_version")
+    if version != SCHEMA_VERSION:
+        raise MapSchemaError(f"map file {where} has schema version {version!r}; this code reads version {SCHEMA_VERSION}")
+    for key, kind in (("dim", int), ("model", str), ("index", str), ("count", int), ("sources", list)):
+        if not isinstance(header.get(key), kind):
+            raise MapError(f"map file {where} header field {key!r} is {header.get(key)!r}; expected a {kind.__name__}")
+    if not all(isinstance(name, str) for name in header["sources"]):
+        raise MapError(f"map file {where} header field 'sources' holds non-strings; expected a list of str")
+    return header
+
+
+def _config_from_header(header: dict[str, Any], where: str) -> MapConfig:
+    extra = {}
+    if header["index"] == "hnsw":
+        extra = dict(hnsw_m=header.get("m"), hnsw_ef_search=header.get("ef_search"),
+                     hnsw_ef_construction=header.get("ef_construction"))
+    try:
+        return MapConfig(dim=header["dim"], model=header["model"], index=header["index"], **extra)
+    except MapError as err:
+        raise MapError(f"map file {where} has a bad configuration: {err}") from err
+
+
+def _check_arrays(data: dict[str, np.ndarray], header: dict[str, Any], where: str) -> tuple[np.ndarray, ...]:
+    n, d = header["count"], header["dim"]
+    expected = {
+        "descriptors": ((n, d), "f"),
+        "ids": ((n,), "iu"),
+        "stamps": ((n,), "f"),
+        "poses": ((n, 3), "f"),
+        "source_codes": ((n,), "iu"),
+    }
+    for key, (shape, kinds) in expected.items():
+        arr = data[key]
+        if arr.shape != shape or arr.dtype.kind not in kinds:
+            raise MapError(f"map file {where}: {key} has shape {arr.shape} dtype {arr.dtype}; expected {shape}")
+    x = np.ascontiguousarray(data["descriptors"], dtype=np.float32)
+    ids = data["ids"].astype(np.int64)
+    codes = data["source_codes"].astype(np.int32)
+    if not np.isfinite(x).all():
+        raise MapError(f"map file {where}: descriptors contain NaN or inf")
+    if n and (ids.min() < 0 or len(np.unique(ids)) != n):
+        raise MapError(f"map file {where}: ids are negative or repeat; expected unique ids >= 0")
+    if n and (codes.min() < 0 or codes.max() >= len(header["sources"])):
+        raise MapError(f"map file {where}: source codes out of range 0..{len(header['sources']) - 1}")
+    return x, ids, data["stamps"].astype(np.float64), data["poses"].astype(np.float64), codes

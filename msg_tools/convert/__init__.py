@@ -1,0 +1,1 @@
+"""Dataset -> rosbag2 converters (nuScenes, KITTI odometry) and a bag-info command."""

@@ -1,0 +1,104 @@
+"""Rigid-transform math on numpy arrays: quaternions (x, y, z, w order), 4 x 4 poses, interpolation."""
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import GeometryError
+
+
+def quaternion_to_matrix(q_xyzw: np.ndarray) -> np.ndarray:
+    """Unit quaternion (x, y, z, w; normalised here) -> 3 x 3 rotation matrix."""
+    q = np.asarray(q_xyzw, dtype=np.float64).reshape(-1)
+    if q.size != 4 or not np.all(np.isfinite(q)):
+        raise GeometryError(f"a quaternion needs 4 finite values (x, y, z, w), got {q.tolist()}")
+    norm = np.linalg.norm(q)
+    if norm < 1e-12:
+        raise GeometryError(f"quaternion {q.tolist()} has zero length; accepted: a non-zero (unit) quaternion")
+    x, y, z, w = q / norm
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def matrix_to_quaternion(R: np.ndarray) -> np.ndarray:
+    """3 x 3 rotation -> unit quaternion (x, y, z, w) with w >= 0 (Shepperd's method)."""
+    m = np.asarray(R, dtype=np.float64)
+    trace = m[0, 0] + m[1, 1] + m[2, 2]
+    if trace > 0:
+        s = 2.0 * np.sqrt(trace + 1.0)
+        q = np.array([(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s])
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+        q = np.array([0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s])
+    elif m[1, 1] > m[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+        q = np.array([(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s])
+    else:
+        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+        q = np.array([(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s])
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def check_pose(T: np.ndarray, *, what: str = "pose", tol: float = 1e-5) -> np.ndarray:
+    """A 4 x 4 rigid transform as float64, or :class:`GeometryError` naming what is wrong."""
+    M = np.asarray(T, dtype=np.float64)
+    if M.shape != (4, 4):
+        raise GeometryError(f"{what} must be a 4 x 4 matrix, got shape {M.shape}")
+    if not np.all(np.isfinite(M)):
+        raise GeometryError(f"{what} has non-finite entries: {M.tolist()}")
+    if not np.allclose(M[3], [0.0, 0.0, 0.0, 1.0]):
+        raise GeometryError(f"{what} has bottom row {M[3].tolist()}; accepted: [0, 0, 0, 1]")
+    R = M[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=tol) or np.linalg.det(R) <= 0:
+        raise GeometryError(f"{what} rotation {R.tolist()} is not orthonormal with determinant +1")
+    return M
+
+
+def pose_from_parts(translation: np.ndarray, q_xyzw: np.ndarray) -> np.ndarray:
+    """Translation (3) + quaternion (x, y, z, w) -> 4 x 4 pose."""
+    T = np.eye(4)
+    T[:3, :3] = quaternion_to_matrix(q_xyzw)
+    T[:3, 3] = np.asarray(translation, dtype=np.float64).reshape(3)
+    return T
+
+
+def pose_to_parts(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """4 x 4 pose -> (translation (3), quaternion (x, y, z, w))."""
+    M = check_pose(T)
+    return M[:3, 3].copy(), matrix_to_quaternion(M[:3, :3])
+
+
+def invert_pose(T: np.ndarray) -> np.ndarray:
+    M = np.asarray(T, dtype=np.float64)
+    out = np.eye(4)
+    out[:3, :3] = M[:3, :3].T
+    out[:3, 3] = -M[:3, :3].T @ M[:3, 3]
+    return out
+
+
+def slerp(q0: np.ndarray, q1: np.ndarray, alpha: float) -> np.ndarray:
+    """Spherical interpolation between unit quaternions (shortest arc); alpha in [0, 1]."""
+    a = np.asarray(q0, dtype=np.float64) / np.linalg.norm(q0)
+    b = np.asarray(q1, dtype=np.float64) / np.linalg.norm(q1)
+    dot = float(np.dot(a, b))
+    if dot < 0.0:
+        b, dot = -b, -dot
+    if dot > 0.9995:  # nearly parallel: normalised lerp is accurate and stable
+        q = a + alpha * (b - a)
+        return q / np.linalg.norm(q)
+    theta = np.arccos(min(dot, 1.0))
+    return (np.sin((1 - alpha) * theta) * a + np.sin(alpha * theta) * b) / np.sin(theta)
+
+
+def interpolate_pose(T0: np.ndarray, T1: np.ndarray, alpha: float) -> np.ndarray:
+    """Pose between ``T0`` (alpha=0) and ``T1`` (alpha=1): linear translation, slerp rotation."""
+    if alpha == 0.0:
+        return np.array(T0, dtype=np.float64)
+    if alpha == 1.0:
+        return np.array(T1, dtype=np.float64)
+    t0, q0 = pose_to_parts(T0)
+    t1, q1 = pose_to_parts(T1)
+    return pose_from_parts(t0 + alpha * (t1 - t0), slerp(q0, q1, alpha))

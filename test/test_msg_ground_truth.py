@@ -1,0 +1,91 @@
+"""Ground-truth revisits on hand-made trajectories, checked against brute force."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from msg_tools import SensorFrame, TrajectoryError, poses_from_frames, revisit_pairs, xyz_cloud
+
+
+def _brute_force(positions: np.ndarray, stamps: np.ndarray, radius: float, gap: float) -> np.ndarray:
+    d = np.linalg.norm(positions[:, None] - positions[None], axis=-1)
+    return np.argwhere((d <= radius) & (stamps[:, None] - stamps[None] > gap))
+
+
+def _square_loop(laps: int, side: float = 40.0) -> tuple[np.ndarray, np.ndarray]:
+    """Drive a square at 1 m/s, sampled every second, ``laps`` times."""
+    s = np.arange(int(4 * side * laps), dtype=np.float64)
+    edge, along = np.divmod(s % (4 * side), side)
+    corners = np.array([[0, 0], [side, 0], [side, side], [0, side], [0, 0]], dtype=np.float64)
+    start, end = corners[edge.astype(int)], corners[edge.astype(int) + 1]
+    positions = start + (end - start) * (along / side)[:, None]
+    return positions, s
+
+
+def test_the_second_lap_of_a_loop_revisits_the_first() -> None:
+    positions, stamps = _square_loop(2)
+    pairs = revisit_pairs(positions, stamps, radius=9.0, min_time_gap=30.0)
+    assert np.array_equal(pairs, _brute_force(positions, stamps, 9.0, 30.0))
+    queries = np.unique(pairs[:, 0])
+    assert queries.min() >= 160 - 9  # nothing before the loop closes (corner shortcuts start a little early)
+    assert set(range(160, 320)) <= set(queries.tolist())  # every pose of lap 2 has a match
+    q = 160 + 20  # middle of the first edge on lap 2
+    assert set(pairs[pairs[:, 0] == q, 1].tolist()) == set(range(11, 30))
+    assert np.all(stamps[pairs[:, 0]] - stamps[pairs[:, 1]] > 30.0)
+
+
+def test_three_dimensional_positions_use_their_height() -> None:
+    positions = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 20.0], [1.0, 0.0, 0.0]])  # a bridge over the start
+    stamps = np.array([0.0, 100.0, 200.0])
+    assert revisit_pairs(positions, stamps).tolist() == [[2, 0]]
+    assert revisit_pairs(positions[:, :2], stamps).tolist() == [[1, 0], [2, 0], [2, 1]]
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    n=st.integers(0, 120),
+    dims=st.sampled_from([2, 3]),
+    radius=st.floats(0.5, 30.0),
+    gap=st.floats(0.0, 50.0),
+    seed=st.integers(0, 2**31),
+)
+def test_grid_search_finds_exactly_the_brute_force_pairs(n: int, dims: int, radius: float, gap: float, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    positions = rng.uniform(-60, 60, size=(n, dims))
+    stamps = rng.uniform(0, 300, size=n)
+    got = revisit_pairs(positions, stamps, radius=radius, min_time_gap=gap)
+    assert got.dtype == np.int64 and got.shape[1] == 2
+    assert np.array_equal(got, _brute_force(positions, stamps, radius, gap).reshape(-1, 2))
+
+
+def test_ten_thousand_poses_take_well_under_a_second() -> None:
+    positions, stamps = _square_loop(5, side=500.0)  # 10 000 poses, 5 laps
+    started = time.perf_counter()
+    pairs = revisit_pairs(positions, stamps)
+    assert time.perf_counter() - started < 3.0
+    assert len(pairs) > 0 and np.all(pairs[:, 0] > pairs[:, 1])
+
+
+def test_bad_trajectories_are_refused_by_name() -> None:
+    with pytest.raises(TrajectoryError, match="N x 2 or N x 3, got shape \\(4,\\)"):
+        revisit_pairs(np.zeros(4), np.zeros(4))
+    with pytest.raises(TrajectoryError, match="stamps must have shape \\(3,\\)"):
+        revisit_pairs(np.zeros((3, 2)), np.zeros(2))
+    with pytest.raises(TrajectoryError, match="radius must be > 0"):
+        revisit_pairs(np.zeros((3, 2)), np.zeros(3), radius=0.0)
+
+
+def test_poses_come_out_of_frames_in_order() -> None:
+    cloud = xyz_cloud(np.zeros((1, 3)))
+    poses = [np.eye(4) for _ in range(3)]
+    for i, pose in enumerate(poses):
+        pose[0, 3] = i
+    frames = [SensorFrame(float(i), [], cloud, pose=poses[i] if i != 1 else None) for i in range(3)]
+    with pytest.raises(TrajectoryError, match="frame 1 .* has no pose"):
+        poses_from_frames(frames)
+    got, stamps, indices = poses_from_frames(frames, skip_missing=True)
+    assert got[:, 0, 3].tolist() == [0.0, 2.0] and stamps.tolist() == [0.0, 2.0] and indices.tolist() == [0, 2]
