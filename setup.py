@@ -42,6 +42,7 @@ setup(
             "msg_tools_nuscenes2bag = msg_tools.convert.nuscenes:main",
             "msg_tools_kitti2bag = msg_tools.convert.kitti:main",
             "msg_tools_baginfo = msg_tools.convert.baginfo:main",
+            "msg_tools_synth = msg_tools.synth.cli:main",
         ],
     },
 )
