@@ -2,14 +2,20 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
-from collections.abc import Iterator, Sequence
+import os
+import pickle
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
 from .checkpoint import init_from_imagenet, load_weights
+from .errors import CheckpointError
 from .models import LCPR
 from .preprocess import LidarPreset, cameras_tensor, lidar_preset, range_image
 from .preprocess.camera import CameraInput
@@ -17,6 +23,8 @@ from .preprocess.camera import CameraInput
 log = logging.getLogger(__name__)
 
 PRECISIONS = ("fp32", "bf16")
+#: ModelConfig fields a checkpoint's 'config' entry fixes (the architecture and its input sizes).
+CHECKPOINT_FIELDS = ("width", "num_cameras", "image_size", "range_size", "lidar")
 
 
 @dataclass(frozen=True)
@@ -29,6 +37,8 @@ class ModelConfig:
     num_cameras: int = 6
     image_size: tuple[int, int] = (256, 704)
     lidar: str = "nuscenes_lidar_top"  # range-image preset (lcpr_core.preprocess.PRESETS)
+    range_size: tuple[int, int] = (0, 0)  # range image (height, width) replacing the preset's; (0, 0) = the preset's
+    width: float = 1.0  # channel multiplier (1.0 = released network; trained narrow models: 0.25-0.5)
     precision: str = "fp32"  # fp32 | bf16 (autocast)
     device: str = "cpu"
     threads: int = 0  # torch intra-op threads; 0 = leave torch's default
@@ -40,14 +50,72 @@ class ModelConfig:
         lidar_preset(self.lidar)  # raises with the accepted names
         if self.threads < 0:
             raise ValueError(f"threads={self.threads}; it must be >= 0 (0 = torch's default)")
+        if not 0 < self.width <= 4:
+            raise ValueError(f"width={self.width}; accepted: a channel multiplier in (0, 4], e.g. 1.0 or 0.25")
+        if len(self.range_size) != 2 or (tuple(self.range_size) != (0, 0) and min(self.range_size) < 1):
+            raise ValueError(f"range_size={self.range_size}; accepted: (0, 0) (the preset's) or (height, width)")
 
     @property
     def range_preset(self) -> LidarPreset:
-        return lidar_preset(self.lidar)
+        preset = lidar_preset(self.lidar)
+        if tuple(self.range_size) == (0, 0):
+            return preset
+        return dataclasses.replace(preset, height=int(self.range_size[0]), width=int(self.range_size[1]))
+
+
+def checkpoint_config(path: str | os.PathLike[str]) -> dict[str, Any] | None:
+    """The 'config' entry of a checkpoint (width, sizes, preset), or None for files without one.
+
+    Released checkpoints and plain state dicts have none (they are the released
+    configuration). Read with ``weights_only=True`` and a memory map, so it is cheap.
+    """
+    file = Path(path)
+    if not file.is_file():
+        raise CheckpointError(f"weights file {str(file)!r} does not exist")
+    try:
+        obj = torch.load(file, map_location="cpu", weights_only=True, mmap=True)
+    except (pickle.UnpicklingError, RuntimeError, EOFError, OSError, ValueError):
+        return None  # load_weights reports what is wrong with the file
+    entry = obj.get("config") if isinstance(obj, Mapping) else None
+    if entry is None:
+        return None
+    if not isinstance(entry, Mapping) or not set(entry) <= set(CHECKPOINT_FIELDS):
+        raise CheckpointError(f"{str(file)!r} has a 'config' entry {entry!r}; accepted keys: "
+                              f"{', '.join(CHECKPOINT_FIELDS)}")
+    return dict(entry)
+
+
+def resolve_config(config: ModelConfig) -> ModelConfig:
+    """``config`` with width, camera count and input sizes taken from its weights file's 'config' entry.
+
+    The file wins: its network only loads at its own width and was trained at its own
+    sizes. Fields the caller set to something else than the default are logged.
+    """
+    if not config.weights:
+        return config
+    entry = checkpoint_config(config.weights)
+    if not entry:
+        return config
+    values: dict[str, Any] = {}
+    for key, value in entry.items():
+        if key in ("image_size", "range_size"):
+            value = tuple(int(v) for v in value)
+        values[key] = value
+    defaults = ModelConfig()
+    for key, value in values.items():
+        given = getattr(config, key)
+        if given != value and given != getattr(defaults, key):
+            log.warning("LCPR: %s=%r replaced by %r from %s", key, given, value, config.weights)
+    return dataclasses.replace(config, **values)
 
 
 def build_model(config: ModelConfig = ModelConfig()) -> LCPR:
-    """An LCPR in eval mode with weights from the config, saying in the log where they came from."""
+    """An LCPR in eval mode with weights from the config, saying in the log where they came from.
+
+    A weights file with a 'config' entry (written by ``lcpr_train``) fixes the width and
+    input sizes (:func:`resolve_config`).
+    """
+    config = resolve_config(config)
     preset = config.range_preset
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(config.seed)
@@ -55,6 +123,7 @@ def build_model(config: ModelConfig = ModelConfig()) -> LCPR:
             num_cameras=config.num_cameras,
             image_size=config.image_size,
             range_size=(preset.height, preset.width),
+            width=config.width,
         )
     if config.weights:
         load_weights(model, config.weights)
@@ -76,6 +145,7 @@ class Describer:
     model: LCPR | None = None
 
     def __post_init__(self) -> None:
+        self.config = resolve_config(self.config)  # preprocessing must follow the weights' sizes
         if self.config.threads:
             torch.set_num_threads(self.config.threads)
         if self.model is None:

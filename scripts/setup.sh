@@ -16,6 +16,17 @@ else
   extras="ros,test"
 fi
 
+# Debian's colcon, for the test that builds the package as ament_python (root + apt only).
+if ! command -v colcon >/dev/null 2>&1; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+    echo "setup: installing Debian's colcon"
+    (apt-get install -y -qq colcon >/dev/null 2>&1 || { apt-get update -qq && apt-get install -y -qq colcon; }) >/dev/null \
+      || echo "setup: could not install colcon; the colcon build test will be skipped"
+  else
+    echo "setup: colcon not found and not root; the colcon build test will be skipped"
+  fi
+fi
+
 [ -x .venv/bin/python ] || "$PYTHON" -m venv "${venv_flags[@]}" .venv
 pip=(.venv/bin/python -m pip install --quiet --disable-pip-version-check)
 # torch first and pinned: an unpinned torch pulls several GB of CUDA packages.

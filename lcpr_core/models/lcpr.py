@@ -15,6 +15,13 @@ from .resnet import resnet_layer
 from .vertconv import VertConv
 
 STAGE_CHANNELS = (64, 128, 256, 512)
+COMPRESSED_CHANNELS = 256  # v_conv_i / v_conv_l output and NetVLAD feature size (released)
+CHANNEL_MULTIPLE = 8  # scaled channel counts are rounded to this (attention heads and C/2 must divide)
+
+
+def scaled_channels(channels: int, width: float) -> int:
+    """``channels * width`` rounded to a multiple of 8 (at least 8); width 1.0 gives ``channels``."""
+    return max(CHANNEL_MULTIPLE, int(round(channels * width / CHANNEL_MULTIPLE)) * CHANNEL_MULTIPLE)
 
 
 @dataclass(frozen=True)
@@ -31,6 +38,10 @@ class LCPR(nn.Module):
         num_cameras: cameras in the panorama (released: 6, nuScenes order).
         image_size: (height, width) of each camera image (released: 256 x 704).
         range_size: (height, width) of the range image (released: 32 x 1056).
+        width: channel multiplier for every convolution, fusion and NetVLAD feature size
+            (released: 1.0; 0.25-0.5 for CPU training). Counts are rounded to multiples
+            of 8. Parameter names never change and the descriptor stays 256-d; only
+            width 1.0 has the released shapes.
 
     The computation has no size baked in: these options only define the inputs
     :meth:`forward` accepts (and :meth:`example_inputs` makes). Widths must be
@@ -43,13 +54,18 @@ class LCPR(nn.Module):
         num_cameras: int = 6,
         image_size: tuple[int, int] = (256, 704),
         range_size: tuple[int, int] = (32, 1056),
+        width: float = 1.0,
     ) -> None:
         super().__init__()
         _check_sizes(num_cameras, image_size, range_size)
+        if not (isinstance(width, (int, float)) and 0 < width <= 4):
+            raise ValueError(f"width={width!r}; accepted: a channel multiplier in (0, 4], e.g. 1.0 (released) or 0.25")
         self.num_cameras = num_cameras
         self.image_size = tuple(image_size)
         self.range_size = tuple(range_size)
-        c1, c2, c3, c4 = STAGE_CHANNELS
+        self.width = float(width)
+        c1, c2, c3, c4 = (scaled_channels(c, width) for c in STAGE_CHANNELS)
+        compressed = scaled_channels(COMPRESSED_CHANNELS, width)
 
         self.conv1_i = nn.Conv2d(3, c1, 7, stride=2, padding=3, bias=False)
         self.bn1_i = nn.BatchNorm2d(c1)
@@ -67,10 +83,10 @@ class LCPR(nn.Module):
         self.fusion2 = Fusion(c2)
         self.fusion3 = Fusion(c3)
         self.fusion4 = Fusion(c4)
-        self.v_conv_i = VertConv(c4, 256, 256)
-        self.v_conv_l = VertConv(c4, 256, 256)
-        self.netvlad_i = NetVLAD(256, 32, 128)
-        self.netvlad_l = NetVLAD(256, 32, 128)
+        self.v_conv_i = VertConv(c4, compressed, compressed)
+        self.v_conv_l = VertConv(c4, compressed, compressed)
+        self.netvlad_i = NetVLAD(compressed, 32, 128)
+        self.netvlad_l = NetVLAD(compressed, 32, 128)
         self.eca = ECA(3)
 
     @property
@@ -92,8 +108,8 @@ class LCPR(nn.Module):
         b, n = images.shape[:2]
         cam = images.reshape(b * n, *images.shape[2:]).contiguous(memory_format=torch.channels_last)
         cam = self.maxpool(self.relu(self.bn1_i(self.conv1_i(cam))))
-        cam = self.layer1_i(cam)  # (B*N) x 64 x H/4 x W/4
-        lid = self.conv_l(range_image.contiguous(memory_format=torch.channels_last))  # B x 64 x h x w
+        cam = self.layer1_i(cam)  # (B*N) x C1 x H/4 x W/4 (C1 = 64 at width 1)
+        lid = self.conv_l(range_image.contiguous(memory_format=torch.channels_last))  # B x C1 x h x w
         stages = (
             (None, None, self.fusion1),
             (self.layer2_i, self.layer2_l, self.fusion2),

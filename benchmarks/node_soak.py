@@ -1,0 +1,232 @@
+"""Soak test of the real lcpr node: N synthetic frames at 2 Hz of header time, latency and memory.
+
+The node runs as its own process (``python -m lcpr_ros.node``), exactly as deployed;
+this script publishes six camera images and one cloud per frame over DDS (header
+stamps 0.5 s apart, places cycling so that every place comes back after
+``--places`` / 2 seconds) and listens to ``~/candidates`` and ``/diagnostics``.
+
+Pacing: ``--rate 1`` (default) publishes at 2 Hz of wall time, real time;
+``--rate R`` at R x 2 Hz; ``--rate 0`` publishes the next frame as soon as the node
+has decided on the previous one (as fast as it keeps up; the header stamps still
+step 0.5 s, so the node sees a 2 Hz drive in less wall time).
+
+Reported:
+  * frame-to-candidate latency (wall time from publishing a frame to receiving its
+    ``~/candidates`` message) p50/p90/p99, and the node's model time (preprocessing
+    + network, its diagnostics) p50/p90/p99; target: latency p50 <= model p50 + 100 ms;
+  * the node's RSS (/proc/PID/status VmRSS) when ready, after warm-up, at the middle
+    and at the end; target: no growth beyond the map itself (256 float32 per place);
+  * queue state and drops from its diagnostics (frames replaced while busy, sync
+    backlog, pending clouds, waiting frames); target: none growing.
+
+    python benchmarks/node_soak.py                 # 3600 frames = 30 min of drive at 2 Hz
+    python benchmarks/node_soak.py --frames 300 --rate 0
+    python benchmarks/node_soak.py --image-size 256 704 --lidar nuscenes_lidar_top --range-size 0 0 --width 1 \
+        --weights lcpr.pth                         # the released model
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import re
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+import rclpy  # noqa: E402
+from rclpy.context import Context  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+
+from lcpr_ros.harness import FramePublisher, OutputListener, synthetic_place  # noqa: E402
+
+FRAME_DT = 0.5  # s of header time between frames (2 Hz)
+T0 = 1_700_000_000.0
+LATENCY_MARGIN_MS = 100.0
+RSS_GROWTH_MB = 50.0  # allowed beyond the map's own growth
+
+
+def rss_mb(pid: int) -> float:
+    text = Path(f"/proc/{pid}/status").read_text()
+    return int(re.search(r"VmRSS:\s+(\d+) kB", text).group(1)) / 1024
+
+
+def start_node(args: argparse.Namespace, domain: int, prefix: str, log: Path) -> subprocess.Popen[bytes]:
+    ros_args = [
+        "-p", f"model.image_size:=[{args.image_size[0]},{args.image_size[1]}]",
+        "-p", f"model.lidar:={args.lidar}",
+        "-p", f"model.range_size:=[{args.range_size[0]},{args.range_size[1]}]",
+        "-p", f"model.width:={float(args.width)!r}",  # a double parameter needs a decimal point
+        *(["-p", f"model.weights:={args.weights}"] if args.weights else []),
+        "-p", f"camera_topics:=[{','.join(f'{prefix}/CAM_{k}/image/compressed' for k in range(6))}]",
+        "-p", f"lidar_topic:={prefix}/LIDAR_TOP/points",
+        "-p", "match.max_distance:=2.0",  # every keyframe older than 30 s is a candidate: one reply per frame
+        "-p", f"diagnostics.period:={0.1 if args.rate == 0 else 1.0}",
+        "-p", "diagnostics.window:=1000",
+    ]
+    env = {**os.environ, "ROS_DOMAIN_ID": str(domain), "PYTHONUNBUFFERED": "1",
+           "PYTHONPATH": os.pathsep.join([str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])])}
+    out = log.open("wb")
+    return subprocess.Popen([sys.executable, "-m", "lcpr_ros.node", "--ros-args", *ros_args], cwd=REPO, env=env,
+                            stdout=out, stderr=subprocess.STDOUT)
+
+
+def wait_for(condition: Callable[[], bool], timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.02)
+    return True
+
+
+def processed(listener: OutputListener) -> int:
+    values = listener.latest_values("detector")
+    return sum(int(v) for k, v in values.items() if k.startswith("frames "))
+
+
+def ms(values: list[float]) -> str:
+    if not values:
+        return "n/a"
+    p50, p90, p99 = np.percentile(np.asarray(values) * 1000, (50, 90, 99))
+    return f"p50 {p50:7.1f}  p90 {p90:7.1f}  p99 {p99:7.1f} ms"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter,
+                                     epilog=__doc__.split("\n\n", 1)[1])
+    parser.add_argument("--frames", type=int, default=3600, help="frames to publish (default 3600 = 30 min at 2 Hz)")
+    parser.add_argument("--rate", type=float, default=1.0, help="wall pacing: 1 = real time (2 Hz), 0 = as fast as "
+                                                                "the node keeps up")
+    parser.add_argument("--places", type=int, default=100, help="distinct places, visited in turn (default 100)")
+    parser.add_argument("--image-size", type=int, nargs=2, default=(32, 96), metavar=("H", "W"),
+                        help="model.image_size (default 32 96, a tiny model; released: 256 704)")
+    parser.add_argument("--lidar", default="velodyne_vlp16", help="model.lidar preset (released: nuscenes_lidar_top)")
+    parser.add_argument("--range-size", type=int, nargs=2, default=(8, 256), metavar=("H", "W"),
+                        help="model.range_size (default 8 256; 0 0 = the preset's, released: 32 x 1056)")
+    parser.add_argument("--width", type=float, default=0.25, help="model.width (default 0.25; released: 1.0)")
+    parser.add_argument("--weights", default="", help="model.weights (default: seeded random weights)")
+    parser.add_argument("--camera-size", type=int, nargs=2, default=(48, 128), metavar=("H", "W"),
+                        help="size of the published JPEG camera images (nuScenes: 900 1600)")
+    parser.add_argument("--json", type=Path, help="also write the results here")
+    args = parser.parse_args()
+    if args.frames < 2 or args.rate < 0:
+        parser.error("--frames must be >= 2 and --rate >= 0")
+
+    domain = random.randint(1, 100)
+    prefix = f"/soak{random.randint(0, 10**6)}"
+    workdir = Path(tempfile.mkdtemp(prefix="lcpr_soak_"))
+    log = workdir / "node.log"
+    node_proc = start_node(args, domain, prefix, log)
+    context = Context()
+    rclpy.init(context=context, domain_id=domain)
+    driver = rclpy.create_node("soak_driver", context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(driver)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    results: dict[str, object] = {}
+    try:
+        if not wait_for(lambda: "[lcpr]: ready" in log.read_text(errors="replace") or node_proc.poll() is not None,
+                        120) or node_proc.poll() is not None:
+            print(log.read_text(errors="replace"), file=sys.stderr)
+            return 1
+        rss = {"ready": rss_mb(node_proc.pid)}
+        pub = FramePublisher(driver, [f"{prefix}/CAM_{k}/image/compressed" for k in range(6)],
+                             f"{prefix}/LIDAR_TOP/points")
+        listener = OutputListener(driver)
+        pub.wait_for_subscribers(30)
+        listener.wait_for_publishers(30)
+        wait_for(lambda: bool(listener.latest_values("detector")), 10)
+        places = [synthetic_place(i, size=tuple(args.camera_size)) for i in range(args.places)]
+        sent: dict[int, float] = {}
+        warm = min(60, args.frames // 4)
+        start = time.monotonic()
+        snapshots: dict[str, dict[str, str]] = {}
+        for i in range(args.frames):
+            stamp_ms = round((T0 + i * FRAME_DT) * 1000)
+            if args.rate > 0:
+                delay = start + i * FRAME_DT / args.rate - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+            sent[stamp_ms] = time.monotonic()
+            pub.publish(places[i % args.places], stamp_ms / 1000)
+            if args.rate == 0:
+                wait_for(lambda: processed(listener) >= i + 1, 30)
+            if i + 1 in (warm, args.frames // 2):
+                rss["warm" if i + 1 == warm else "middle"] = rss_mb(node_proc.pid)
+                snapshots["warm" if i + 1 == warm else "middle"] = listener.latest_values("inputs")
+            if (i + 1) % 100 == 0:
+                print(f"  {i + 1}/{args.frames} frames, {len(listener.out.candidates)} replies, "
+                      f"RSS {rss_mb(node_proc.pid):.0f} MB", file=sys.stderr)
+        last = round((T0 + (args.frames - 1) * FRAME_DT) * 1000)
+        wait_for(lambda: any(round(rows[0]["query_stamp"] * 1000) == last for rows in listener.out.candidates), 30)
+        time.sleep(2.5)  # one more diagnostics message with the final counts
+        wall = time.monotonic() - start
+        rss["end"] = rss_mb(node_proc.pid)
+
+        latencies = [received - sent[round(rows[0]["query_stamp"] * 1000)]
+                     for rows, received in zip(listener.out.candidates, listener.out.received)
+                     if round(rows[0]["query_stamp"] * 1000) in sent]
+        detector = listener.latest_values("detector")
+        inputs = listener.latest_values("inputs")
+        model = [float(detector.get(f"model {p} (ms)", "nan")) for p in ("p50", "p90", "p99")]
+        lat = np.percentile(np.asarray(latencies) * 1000, (50, 90, 99)).tolist() if latencies else [float("nan")] * 3
+        drops = {k.removeprefix("dropped "): int(v) for k, v in inputs.items() if k.startswith("dropped ")}
+        map_mb = int(detector.get("map size", "0")) * 256 * 4 / 2**20
+        growth = rss["end"] - rss.get("warm", rss["ready"])
+        results = {
+            "frames": args.frames, "rate": args.rate, "wall_s": wall, "header_s": args.frames * FRAME_DT,
+            "replies": len(listener.out.candidates), "latency_ms": lat, "model_ms": model, "rss_mb": rss,
+            "map_size": int(detector.get("map size", "0")), "drops": drops,
+            "sync_pending": detector.get("sync pending"), "worker_waiting": detector.get("worker waiting"),
+            "image_size": list(args.image_size), "lidar": args.lidar, "range_size": list(args.range_size),
+            "width": args.width,
+        }
+        print(f"\nlcpr node soak: {args.frames} frames ({args.frames * FRAME_DT:.0f} s of 2 Hz header time) "
+              f"in {wall:.0f} s wall (rate {args.rate}); model {args.image_size[0]}x{args.image_size[1]} "
+              f"images, {args.lidar} range {args.range_size[0]}x{args.range_size[1]}, width {args.width}")
+        print(f"  replies (~/candidates)     {len(listener.out.candidates)} for {args.frames} frames "
+              f"(frames in the first 30 s have no eligible match)")
+        print(f"  frame-to-candidate latency {ms(latencies)}")
+        print(f"  model time (node)          p50 {model[0]:7.1f}  p90 {model[1]:7.1f}  p99 {model[2]:7.1f} ms")
+        print("  node RSS                   " + "  ".join(f"{k} {v:.0f} MB" for k, v in rss.items())
+              + f"  (map itself: {map_mb:.1f} MB)")
+        print(f"  drops                      {drops or 'none'}; sync pending {detector.get('sync pending')}, "
+              f"worker waiting {detector.get('worker waiting')}")
+        ok_latency = lat[0] <= model[0] + LATENCY_MARGIN_MS
+        ok_memory = growth <= map_mb + RSS_GROWTH_MB
+        print(f"  latency p50 <= model p50 + {LATENCY_MARGIN_MS:.0f} ms: {'yes' if ok_latency else 'NO'}; "
+              f"RSS growth after warm-up {growth:+.1f} MB <= map + {RSS_GROWTH_MB:.0f} MB: "
+              f"{'yes' if ok_memory else 'NO'}")
+        results.update(latency_ok=ok_latency, memory_ok=ok_memory)
+        if args.json:
+            args.json.write_text(json.dumps(results, indent=2))
+        return 0 if ok_latency and ok_memory else 2
+    finally:
+        if node_proc.poll() is None:
+            node_proc.send_signal(signal.SIGINT)
+            try:
+                node_proc.wait(60)
+            except subprocess.TimeoutExpired:
+                node_proc.kill()
+        executor.shutdown(timeout_sec=5)
+        spinner.join(5)
+        driver.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

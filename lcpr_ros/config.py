@@ -1,0 +1,96 @@
+"""The node's own settings (topics, synchronisation, map file, diagnostics) as typed config.
+
+The detector's settings are :class:`lcpr_core.detector.DetectorConfig`; both are
+exposed as ROS parameters by :mod:`lcpr_ros.params`, which walks these dataclasses.
+Every ``__post_init__`` refuses a bad value with a ValueError naming it.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from lcpr_core.detector import DetectorConfig
+from msg_tools.frames import NUSCENES_TOPICS
+
+CAMERA_TYPES = ("auto", "compressed", "raw")
+
+
+def _check(ok: bool, message: str) -> None:
+    if not ok:
+        raise ValueError(message)
+
+
+def _finite_non_negative(obj: object, *names: str) -> None:
+    for name in names:
+        value = getattr(obj, name)
+        _check(isinstance(value, (int, float)) and math.isfinite(value) and value >= 0,
+               f"{name}={value!r}; it must be a finite number >= 0")
+
+
+@dataclass(frozen=True)
+class SyncConfig:
+    slop: float = 0.05  # s: each camera's image nearest the cloud stamp within this is used
+    camera_timeout: float = 1.0  # s of header time: a camera silent this long counts as stopped (None)
+    max_wait: float = 0.2  # s of wall time a cloud waits for images stamped after it
+    min_cameras: int = 1  # frames with fewer images are dropped ("no camera")
+    odom_max_gap: float = 1.0  # s: odometry neighbours at most this far apart are interpolated
+    image_buffer: int = 16  # images kept per camera for matching
+    max_pending: int = 8  # clouds waiting for images at most; older ones are dropped
+
+    def __post_init__(self) -> None:
+        _finite_non_negative(self, "slop", "camera_timeout", "max_wait", "odom_max_gap")
+        _check(self.min_cameras >= 0, f"sync.min_cameras={self.min_cameras}; it must be >= 0")
+        _check(self.image_buffer >= 1, f"sync.image_buffer={self.image_buffer}; it must be >= 1")
+        _check(self.max_pending >= 1, f"sync.max_pending={self.max_pending}; it must be >= 1")
+
+
+@dataclass(frozen=True)
+class MapFileConfig:
+    path: str = ""  # descriptor map file (.npz); "" = in memory only
+    save_on_shutdown: bool = True
+
+
+@dataclass(frozen=True)
+class DiagnosticsConfig:
+    period: float = 1.0  # s between /diagnostics messages (wall time)
+    window: int = 200  # latest frames in the latency percentiles
+
+    def __post_init__(self) -> None:
+        _check(math.isfinite(self.period) and self.period > 0, f"diagnostics.period={self.period}; it must be > 0")
+        _check(self.window >= 1, f"diagnostics.window={self.window}; it must be >= 1")
+
+
+@dataclass(frozen=True)
+class NodeConfig:
+    camera_topics: tuple[str, ...] = NUSCENES_TOPICS.cameras  # nuScenes camera order
+    camera_type: str = "auto"  # auto (".../compressed" -> CompressedImage) | compressed | raw
+    lidar_topic: str = NUSCENES_TOPICS.lidar
+    odom_topic: str = ""  # nav_msgs/Odometry; "" = no poses (no markers, no distance keyframing)
+    sync: SyncConfig = field(default_factory=SyncConfig)
+    map: MapFileConfig = field(default_factory=MapFileConfig)
+    diagnostics: DiagnosticsConfig = field(default_factory=DiagnosticsConfig)
+
+    def __post_init__(self) -> None:
+        _check(self.camera_type in CAMERA_TYPES,
+               f"camera_type={self.camera_type!r}; accepted: {', '.join(CAMERA_TYPES)}")
+        _check(len(self.camera_topics) >= 1 and all(self.camera_topics),
+               f"camera_topics={list(self.camera_topics)}; give one non-empty topic per camera")
+        _check(len(set(self.camera_topics)) == len(self.camera_topics),
+               f"camera_topics={list(self.camera_topics)} repeat a topic; give one topic per camera")
+        _check(bool(self.lidar_topic), "lidar_topic is empty; a PointCloud2 topic is required")
+
+    def compressed(self, index: int) -> bool:
+        """Whether camera ``index`` is subscribed as sensor_msgs/CompressedImage."""
+        if self.camera_type == "auto":
+            return self.camera_topics[index].rstrip("/").endswith("/compressed")
+        return self.camera_type == "compressed"
+
+
+def check_together(node: NodeConfig, detector: DetectorConfig) -> None:
+    """Refuse settings that are valid alone but not together."""
+    cameras = len(node.camera_topics)
+    _check(cameras == detector.model.num_cameras,
+           f"camera_topics names {cameras} topics but model.num_cameras={detector.model.num_cameras}; "
+           "give one topic per camera of the model")
+    _check(node.sync.min_cameras <= cameras,
+           f"sync.min_cameras={node.sync.min_cameras} is more than the {cameras} cameras in camera_topics")

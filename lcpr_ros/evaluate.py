@@ -1,0 +1,343 @@
+"""Offline evaluation of the loop detector on a rosbag2, against the bag's own odometry (no DDS, no rclpy).
+
+    lcpr_eval BAG [--weights FILE] [--precision fp32|bf16] [--threads N] [--limit N] [--out DIR] ...
+
+Reads synchronised frames with :func:`msg_tools.bags.read_frames`, runs
+:class:`lcpr_core.detector.LoopDetector` frame by frame (collecting every candidate:
+the precision-recall sweep thresholds afterwards; ``--max-distance`` is only the
+operating point reported and drawn), runs the Scan Context baseline on the same
+keyframes, and writes into ``--out``: report.json, pr_curve.png, latency.png,
+trajectory.png. Protocols: see :mod:`lcpr_core.evaluation`.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import os
+import sys
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lcpr_core.describer import PRECISIONS, Describer, ModelConfig
+from lcpr_core.detector import DetectorConfig, Frame, KeyframeConfig, LoopDetector, MatchConfig
+from lcpr_core.errors import LcprError
+from lcpr_core.evaluation import (
+    EvaluationReport,
+    MethodRun,
+    evaluate_method,
+    ground_truth,
+    plot_latency,
+    plot_pr_curves,
+    plot_trajectory,
+    summary_table,
+)
+from lcpr_core.preprocess import PRESETS
+from lcpr_core.scan_context import ScanContextConfig, ScanContextMatcher, rank_database
+from msg_tools.bags import read_frames
+from msg_tools.errors import MsgToolsError
+from msg_tools.frames import KITTI_TOPICS, NUSCENES_TOPICS, SensorFrame, Topics
+
+TOPIC_PRESETS: dict[str, Topics] = {"nuscenes": NUSCENES_TOPICS, "kitti": KITTI_TOPICS}
+LIDAR_FOR_TOPICS = {"nuscenes": "nuscenes_lidar_top", "kitti": "kitti_hdl64e"}
+COLLECT_ALL = 2.0 + 1e-3  # unit descriptors are at most 2 apart: every candidate is kept
+N_VALUES = (1, 5, 10)
+OUTPUT_FILES = ("report.json", "pr_curve.png", "latency.png", "trajectory.png")
+
+
+@dataclass(frozen=True)
+class EvalOptions:
+    """Everything an evaluation run depends on besides the bag."""
+
+    topics: Topics = NUSCENES_TOPICS
+    model: ModelConfig = field(default_factory=ModelConfig)
+    keyframe: KeyframeConfig = field(default_factory=KeyframeConfig)
+    exclude_recent_s: float = 30.0
+    radius: float = 9.0  # m: a candidate this close to the query's true position is correct
+    max_distance: float = 1.0  # LCPR descriptor distance under which a loop is accepted (reported point)
+    scan_context: ScanContextConfig | None = field(default_factory=ScanContextConfig)  # None = no baseline
+    sc_max_distance: float | None = None  # Scan Context distance under which a loop is accepted; None = max F1
+    slop: float = 0.05  # s between a cloud and its camera images
+    limit: int = 0  # frames to process; 0 = all
+    warmup: int = 5  # keyframes left out of the latency statistics
+    split_offset: float | None = None  # s after the first keyframe where database/query split; None = first revisit
+
+    def __post_init__(self) -> None:
+        for name in ("exclude_recent_s", "max_distance", "sc_max_distance", "slop", "limit", "warmup"):
+            value = getattr(self, name)
+            if value is not None and not value >= 0:
+                raise ValueError(f"{name}={value!r}; it must be >= 0")
+        if not self.radius > 0:
+            raise ValueError(f"radius={self.radius!r}; it must be a positive distance in metres")
+        if self.model.num_cameras != len(self.topics.cameras):
+            raise ValueError(f"model.num_cameras={self.model.num_cameras} but the topics name "
+                             f"{len(self.topics.cameras)} cameras; they must agree")
+
+
+@dataclass
+class _RunRecord:
+    """What the run recorded, per keyframe in keyframe order."""
+
+    detector: LoopDetector
+    matcher: ScanContextMatcher | None
+    stamps: list[float] = field(default_factory=list)
+    positions: list[np.ndarray] = field(default_factory=list)
+    lcpr_ids: list[list[int]] = field(default_factory=list)  # map ids, best first
+    lcpr_dist: list[list[float]] = field(default_factory=list)
+    lcpr_timings: list[dict[str, float]] = field(default_factory=list)
+    sc_ids: list[list[int]] = field(default_factory=list)
+    sc_dist: list[list[float]] = field(default_factory=list)
+    sc_timings: list[dict[str, float]] = field(default_factory=list)
+    map_ids: list[int] = field(default_factory=list)
+    reasons: Counter = field(default_factory=Counter)
+    degraded: int = 0
+    frames: int = 0
+
+
+def to_detector_frame(frame: SensorFrame) -> Frame:
+    """A bag frame as the detector takes it: encoded or RGB images (None = missing), N x 3 points, pose."""
+    images = [None if c is None else (c.jpeg if c.jpeg is not None else c.rgb) for c in frame.cameras]
+    return Frame(stamp=frame.stamp, images=images, points=frame.xyz, pose=frame.pose)
+
+
+def evaluate_bag(
+    bag: str | os.PathLike[str],
+    options: EvalOptions | None = None,
+    *,
+    describer: Describer | None = None,
+    progress: bool = True,
+) -> EvaluationReport:
+    """Run the detector (and the baseline) over a bag and evaluate both; nothing is written."""
+    opts = options if options is not None else EvalOptions()
+    start = time.perf_counter()
+    config = DetectorConfig(
+        model=opts.model, keyframe=opts.keyframe,
+        match=MatchConfig(top_k=max(N_VALUES), max_distance=COLLECT_ALL, exclude_recent_s=opts.exclude_recent_s),
+    )
+    sc_cfg = None if opts.scan_context is None else dataclasses.replace(
+        opts.scan_context, exclude_recent_s=opts.exclude_recent_s)
+    matcher = None if sc_cfg is None else ScanContextMatcher(sc_cfg)
+    record = _RunRecord(LoopDetector(config, describer=describer), matcher)
+    stream = read_frames(bag, topics=opts.topics, slop=opts.slop, decode_compressed=False)
+    total = len(stream) if not opts.limit else min(opts.limit, len(stream))
+    bar = _bar(total, progress)
+    try:
+        for frame in stream:
+            if opts.limit and record.frames >= opts.limit:
+                break
+            _step(frame, record)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(keyframes=len(record.stamps), refresh=False)
+    finally:
+        stream.close()
+        if bar is not None:
+            bar.close()
+    stats = dataclasses.asdict(stream.stats)
+    counts = {
+        "frames": record.frames, "frames_in_bag": len(stream), "keyframes": len(record.stamps),
+        "not_keyframes": {r: n for r, n in record.reasons.items() if r != "keyframe"},
+        "degraded_keyframes": record.degraded,
+        "keyframes_without_pose": int(sum(not np.isfinite(p).all() for p in record.positions)),
+        "dropped_clouds": stream.stats.dropped_clouds, "reader": stats,
+    }
+    report = _evaluate(record, opts, sc_cfg, counts, os.fspath(bag))
+    report.wall_time_s = time.perf_counter() - start
+    return report
+
+
+def _step(frame: SensorFrame, record: _RunRecord) -> None:
+    record.frames += 1
+    det_frame = to_detector_frame(frame)
+    result = record.detector.process(det_frame)
+    record.reasons[result.reason] += 1
+    if result.keyframe_id is None:
+        return
+    position = np.full(3, np.nan) if frame.pose is None else np.asarray(frame.pose, np.float64)[:3, 3]
+    record.stamps.append(frame.stamp)
+    record.positions.append(position)
+    record.map_ids.append(result.keyframe_id)
+    record.lcpr_ids.append([c.match_id for c in result.candidates])
+    record.lcpr_dist.append([c.distance for c in result.candidates])
+    record.lcpr_timings.append(dict(result.timings))
+    record.degraded += bool(result.missing_cameras)
+    if record.matcher is not None:
+        assert det_frame.points is not None  # keyframes always have a cloud (require_lidar)
+        sc = record.matcher.process(det_frame.points, stamp=frame.stamp, position=position, k=max(N_VALUES))
+        record.sc_ids.append([m.id for m in sc.matches])  # matcher ids are keyframe rows
+        record.sc_dist.append([m.distance for m in sc.matches])
+        record.sc_timings.append(sc.timings)
+
+
+def _ranked(
+    ids: list[list[int]], dist: list[list[float]], row_of: dict[int, int], k: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate lists -> (N, k) keyframe rows (-1 = none) and distances (inf = none)."""
+    out_ids = np.full((len(ids), k), -1, np.int64)
+    out_d = np.full((len(ids), k), np.inf)
+    for r, (row_ids, row_d) in enumerate(zip(ids, dist)):
+        for c, (i, d) in enumerate(zip(row_ids[:k], row_d[:k])):
+            out_ids[r, c], out_d[r, c] = row_of[i], d
+    return out_ids, out_d
+
+
+def _evaluate(record: _RunRecord, opts: EvalOptions, sc_cfg: ScanContextConfig | None, counts: dict[str, Any],
+              source: str) -> EvaluationReport:
+    k = max(N_VALUES)
+    stamps = np.asarray(record.stamps, np.float64)
+    positions = np.asarray(record.positions, np.float64).reshape(-1, 3)
+    split = None if opts.split_offset is None or not len(stamps) else float(stamps[0]) + opts.split_offset
+    gt = ground_truth(stamps, positions, radius=opts.radius, exclude_recent_s=opts.exclude_recent_s, split_time=split)
+    row_of = {map_id: row for row, map_id in enumerate(record.map_ids)}
+    ids, dist = _ranked(record.lcpr_ids, record.lcpr_dist, row_of, k)
+    runs = [MethodRun(name="LCPR", ranked_ids=ids, ranked_distances=dist, threshold=opts.max_distance,
+                      timings=record.lcpr_timings, descriptors=_descriptors(record, row_of),
+                      distance="descriptor L2 (0..2)")]
+    if sc_cfg is not None and record.matcher is not None:
+        ids, dist = _ranked(record.sc_ids, record.sc_dist, {i: i for i in range(len(record.sc_ids))}, k)
+        scs = record.matcher.descriptors
+
+        def retrieve(q: np.ndarray, db: np.ndarray, kk: int) -> tuple[np.ndarray, np.ndarray]:
+            return rank_database(scs[q], scs[db], k=kk, config=sc_cfg)
+
+        runs.append(MethodRun(name="Scan Context", ranked_ids=ids, ranked_distances=dist,
+                              threshold=opts.sc_max_distance, timings=record.sc_timings, retrieve=retrieve,
+                              distance="column-shift cosine (0..1)"))
+    methods = [evaluate_method(run, gt, n_values=N_VALUES, warmup=opts.warmup) for run in runs]
+    settings = {
+        "topics": dataclasses.asdict(opts.topics), "model": dataclasses.asdict(opts.model),
+        "keyframe": dataclasses.asdict(opts.keyframe), "exclude_recent_s": opts.exclude_recent_s,
+        "radius": opts.radius, "max_distance": opts.max_distance, "sc_max_distance": opts.sc_max_distance,
+        "scan_context": None if sc_cfg is None else dataclasses.asdict(sc_cfg), "slop": opts.slop,
+        "limit": opts.limit, "warmup": opts.warmup, "n_values": list(N_VALUES), "split_offset": opts.split_offset,
+    }
+    return EvaluationReport(source=source, settings=settings, counts=counts, ground_truth=gt, methods=methods)
+
+
+def _descriptors(record: _RunRecord, row_of: dict[int, int]) -> np.ndarray | None:
+    """(N, D) LCPR descriptors in keyframe order, read back from the detector's map."""
+    if not row_of:
+        return None
+    ids = record.detector.map.ids
+    desc = record.detector.map.descriptors
+    out = np.zeros((len(row_of), desc.shape[1]), np.float32)
+    for pos, map_id in enumerate(ids.tolist()):
+        if map_id in row_of:
+            out[row_of[map_id]] = desc[pos]
+    return out
+
+
+def _bar(total: int, enabled: bool) -> Any:
+    if not enabled:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit="frame", desc="lcpr_eval", dynamic_ncols=True)
+
+
+def write_outputs(report: EvaluationReport, out: str | os.PathLike[str]) -> list[Path]:
+    """report.json and the three figures into ``out``; returns their paths."""
+    folder = Path(out)
+    paths = [folder / name for name in OUTPUT_FILES]
+    report.write_json(paths[0])
+    plot_pr_curves(report.methods, paths[1])
+    plot_latency(report.methods, paths[2], warmup=int(report.settings.get("warmup", 0)))
+    plot_trajectory(report.ground_truth, report.methods, paths[3])
+    return paths
+
+
+# ------------------------------------------------------------------------------- command line
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="lcpr_eval", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("bag", type=Path, help="rosbag2 folder (sqlite3 or mcap) with cameras, LiDAR and odometry")
+    p.add_argument("--out", type=Path, default=Path("out/eval"), help="output folder (default out/eval)")
+    g = p.add_argument_group("model")
+    g.add_argument("--weights", default="", help="LCPR checkpoint or state dict (default: seeded random init)")
+    g.add_argument("--imagenet", default="", help="torchvision resnet18 state dict, used without --weights")
+    g.add_argument("--seed", type=int, default=0, help="random initialisation seed (default 0)")
+    g.add_argument("--precision", choices=PRECISIONS, default="fp32", help="network precision (default fp32)")
+    g.add_argument("--threads", type=int, default=0, help="torch threads (default: torch's choice)")
+    g.add_argument("--image-size", type=int, nargs=2, metavar=("H", "W"), default=None,
+                   help="camera input size, multiples of 32 (default 256 704, the released model's)")
+    g.add_argument("--lidar", choices=sorted(PRESETS), default=None,
+                   help="range-image preset (default: by --topics, nuscenes_lidar_top or kitti_hdl64e)")
+    g = p.add_argument_group("topics")
+    g.add_argument("--topics", choices=sorted(TOPIC_PRESETS), default="nuscenes",
+                   help="topic preset (default nuscenes)")
+    g.add_argument("--camera-topics", nargs="+", default=None, metavar="TOPIC", help="camera topics, in rig order")
+    g.add_argument("--lidar-topic", default=None, help="PointCloud2 topic")
+    g.add_argument("--odom-topic", default=None, help="nav_msgs/Odometry topic (ground truth)")
+    g.add_argument("--slop", type=float, default=0.05, help="max s between a cloud and its images (default 0.05)")
+    g = p.add_argument_group("detection and evaluation")
+    g.add_argument("--max-distance", type=float, default=1.0,
+                   help="LCPR descriptor distance under which a loop is accepted (reported and drawn; default 1.0)")
+    g.add_argument("--sc-max-distance", type=float, default=None,
+                   help="Scan Context distance (0..1) under which a loop is accepted (default: its max-F1 threshold)")
+    g.add_argument("--radius", type=float, default=9.0,
+                   help="m within which a match is correct (default 9, the paper's; 5 is stricter)")
+    g.add_argument("--exclude-recent", type=float, default=30.0, help="s of recent keyframes not matched (default 30)")
+    g.add_argument("--keyframe-interval", type=float, default=0.5, help="min s between keyframes (default 0.5)")
+    g.add_argument("--keyframe-distance", type=float, default=0.0,
+                   help="min m travelled between keyframes (default 0: off)")
+    g.add_argument("--split-offset", type=float, default=None,
+                   help="s after the first keyframe where the database/query split lies (default: first real revisit)")
+    g.add_argument("--limit", type=int, default=0, help="process at most N frames (default 0: all)")
+    g.add_argument("--warmup", type=int, default=5, help="keyframes left out of latency statistics (default 5)")
+    g.add_argument("--no-scan-context", action="store_true", help="skip the Scan Context baseline")
+    g.add_argument("--lidar-height", type=float, default=2.0, help="m added to z by Scan Context (default 2.0)")
+    g.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p.parse_args(argv)
+
+
+def options_from_args(args: argparse.Namespace) -> EvalOptions:
+    base = TOPIC_PRESETS[args.topics]
+    topics = dataclasses.replace(
+        base,
+        cameras=tuple(args.camera_topics) if args.camera_topics else base.cameras,
+        camera_info=() if args.camera_topics else base.camera_info,
+        lidar=args.lidar_topic or base.lidar,
+        odom=args.odom_topic or base.odom,
+    )
+    if args.camera_topics:  # depth/label topics belong to the preset's cameras
+        topics = dataclasses.replace(topics, depth=(), labels=())
+    model = ModelConfig(
+        weights=args.weights, imagenet=args.imagenet, seed=args.seed, num_cameras=len(topics.cameras),
+        image_size=tuple(args.image_size) if args.image_size else ModelConfig().image_size,
+        lidar=args.lidar or LIDAR_FOR_TOPICS[args.topics], precision=args.precision, threads=args.threads,
+    )
+    return EvalOptions(
+        topics=topics, model=model,
+        keyframe=KeyframeConfig(min_interval=args.keyframe_interval, min_distance=args.keyframe_distance),
+        exclude_recent_s=args.exclude_recent, radius=args.radius, max_distance=args.max_distance,
+        scan_context=None if args.no_scan_context else ScanContextConfig(lidar_height=args.lidar_height),
+        sc_max_distance=args.sc_max_distance, slop=args.slop, limit=args.limit, warmup=args.warmup,
+        split_offset=args.split_offset,
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    try:
+        options = options_from_args(args)
+        report = evaluate_bag(args.bag, options, progress=not args.quiet)
+        paths = write_outputs(report, args.out)
+    except (LcprError, MsgToolsError, ValueError, OSError) as err:
+        print(f"lcpr_eval: {err}", file=sys.stderr)
+        return 2
+    print(f"\nlcpr_eval {args.bag} ({report.wall_time_s:.1f} s)")
+    print(summary_table(report, n_values=N_VALUES))
+    if not (args.weights or args.imagenet):
+        print("note: LCPR ran with random weights (no --weights): its numbers are not those of a trained model")
+    print("written: " + ", ".join(str(p) for p in paths))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,343 @@
+"""``lcpr_node``: six cameras + one LiDAR (+ odometry) in, loop-closure candidates out.
+
+The node declares the parameters (:mod:`lcpr_ros.params`), builds the detector's
+config, converts and synchronises messages on the callback thread and hands each
+synchronised frame to one worker thread that runs :class:`LoopDetector` (the newest
+frame waits in a single slot while the worker is busy). See ``lcpr_node --help``.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from functools import partial
+from typing import Any
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.signals import SignalHandlerOptions
+from rclpy.utilities import remove_ros_args
+from sensor_msgs.msg import CompressedImage, Image, PointCloud2
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import MarkerArray
+
+from lcpr_core.detector import DetectorConfig, Frame, LoopDetector
+from lcpr_core.errors import MapError
+from lcpr_core.preprocess.camera import CameraInput
+
+from .config import NodeConfig
+from .diagnostics import DiagnosticsBuilder, Health
+from .errors import ConfigError, InputRejected, MapLoadError
+from .inputs import CLOUD_NAN, camera_input, cloud_points, compressed_payload, odometry_pose, raw_payload
+from .mapstore import load_prior_map, save_map
+from .markers import LoopMarkers, MarkerSink, NoMarkers
+from .outputs import candidates_msg, loop_closure_msg
+from .params import Settings, all_leaves, describe, settings_from
+from .poses import NoPoses, OdometryBuffer, PoseSource
+from .process import StopOnSignal, spin_until
+from .ros_params import RuntimeParameters, declare
+from .stamps import NS_PER_S, stamp_ns
+from .stats import Counts, RateMeter, WarnOnce, Window
+from .sync import SyncedFrame, Synchroniser
+from .worker import Worker
+
+NODE_NAME = "lcpr"
+BUSY = "frame: replaced while busy"
+FAILED = "frame: processing failed"
+RELEASE_PERIOD = 0.05  # s between checks for clouds whose wait for images ran out
+SHUTDOWN_TIMEOUT = 60.0  # s the worker may take to finish its frames at shutdown
+
+#: Candidate topics: every candidate must arrive.
+CANDIDATE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                           durability=DurabilityPolicy.VOLATILE)
+
+
+class LcprNode(Node):
+    """The ``lcpr`` node. Raises ConfigError / MapLoadError when it cannot start."""
+
+    def __init__(self, *, parameter_overrides: list[Parameter[Any]] | None = None, **kwargs: Any) -> None:
+        super().__init__(NODE_NAME, parameter_overrides=parameter_overrides, **kwargs)
+        self._leaves = all_leaves()
+        self.settings: Settings = settings_from(declare(self, self._leaves))
+        node_cfg, det_cfg = self.settings.node, self.settings.detector
+        log = self.get_logger()
+        self.warnings = WarnOnce(log.warning)
+        self.drops, self.fixes, self.decisions = Counts(), Counts(), Counts()
+        self.rates = RateMeter()
+        self.latency = Window(node_cfg.diagnostics.window)
+        self.model_time = Window(node_cfg.diagnostics.window)
+        self.loops = 0
+        self._closed = False
+
+        prior = load_prior_map(node_cfg.map.path, det_cfg.map)
+        try:
+            self.detector = LoopDetector(det_cfg, prior_map=prior)
+        except Exception as err:  # noqa: BLE001 - weights, device, sizes: all refuse the start
+            raise ConfigError(f"cannot build the detector from the model.* parameters: {err}") from err
+        self._detector_lock = threading.Lock()
+        self._next_detector_config: DetectorConfig | None = None
+
+        self.poses, self.markers = self._pose_parts(node_cfg)  # first: see _pose_parts
+        self.sync = Synchroniser(node_cfg.sync, len(node_cfg.camera_topics), poses=self.poses)
+
+        self._loop_pub = self.create_publisher(Float64MultiArray, "~/loop_closure", CANDIDATE_QOS)
+        self._candidates_pub = self.create_publisher(Float64MultiArray, "~/candidates", CANDIDATE_QOS)
+        self._diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self._diagnostics = DiagnosticsBuilder(self.get_name())
+
+        self._payload: list[Callable[[Any], Any]] = []
+        for k, topic in enumerate(node_cfg.camera_topics):
+            compressed = node_cfg.compressed(k)
+            self._payload.append(compressed_payload if compressed else raw_payload)
+            self.create_subscription(CompressedImage if compressed else Image, topic, partial(self._on_image, k),
+                                     qos_profile_sensor_data)
+        self.create_subscription(PointCloud2, node_cfg.lidar_topic, self._on_cloud, qos_profile_sensor_data)
+        self.create_service(Trigger, "~/save_map", self._on_save_map)
+        self.create_timer(RELEASE_PERIOD, self._release)
+        self.create_timer(node_cfg.diagnostics.period, self._publish_diagnostics)
+
+        self.worker: Worker[SyncedFrame] = Worker(self._process, on_replaced=self._on_replaced,
+                                                  on_error=self._on_failed)
+        self.worker.start()
+        RuntimeParameters(self, self._leaves, self._apply)
+        where = node_cfg.map.path or "memory only"
+        log.info(f"ready: {len(node_cfg.camera_topics)} cameras, lidar {node_cfg.lidar_topic}, "
+                 f"odometry {node_cfg.odom_topic or 'none'}; map {where} with {len(self.detector.map)} places")
+
+    def _pose_parts(self, cfg: NodeConfig) -> tuple[PoseSource, MarkerSink]:
+        """Odometry buffer + markers, or their null objects when there is no odometry topic.
+
+        The odometry subscription is created before the sensor ones: when a pose and a
+        cloud are both waiting, the executor then takes the pose first.
+        """
+        if not cfg.odom_topic:
+            return NoPoses(), NoMarkers()
+        buffer = OdometryBuffer(slop=cfg.sync.slop, max_gap=cfg.sync.odom_max_gap)
+        self.create_subscription(Odometry, cfg.odom_topic, partial(self._on_odom, buffer), qos_profile_sensor_data)
+        return buffer, LoopMarkers(self.create_publisher(MarkerArray, "~/markers", CANDIDATE_QOS))
+
+    # -- inputs (callback thread) ---------------------------------------------------------
+    def _reject(self, err: InputRejected) -> None:
+        self.drops.add(err.reason)
+        self.warnings(err.reason, err.detail)
+
+    def _on_image(self, camera: int, msg: Any) -> None:
+        topic = self.settings.node.camera_topics[camera]
+        self.rates.tick(topic)
+        try:
+            payload = self._payload[camera](msg)
+        except InputRejected as err:
+            self._reject(InputRejected(err.reason, f"{topic}: {err.detail}"))
+            return
+        ns = stamp_ns(msg.header)
+        refused = self.sync.offer_image(camera, ns, payload)
+        if refused is not None:
+            self._reject(InputRejected(f"image: {refused}", f"{topic} stamp {ns / NS_PER_S:.9f}"))
+            return
+        self._release()
+
+    def _on_cloud(self, msg: PointCloud2) -> None:
+        self.rates.tick(self.settings.node.lidar_topic)
+        ns = stamp_ns(msg.header)
+        try:
+            points, removed = cloud_points(msg)
+        except InputRejected as err:
+            self._reject(err)
+            return
+        if removed:
+            self.fixes.add(CLOUD_NAN, removed)
+            self.warnings(CLOUD_NAN, f"{removed} of {removed + len(points)} points had NaN/inf x, y or z")
+        refused = self.sync.offer_cloud(ns, points)
+        if refused is not None:
+            self._reject(InputRejected(f"cloud: {refused}", f"stamp {ns / NS_PER_S:.9f}"))
+            return
+        self._release()
+
+    def _on_odom(self, buffer: OdometryBuffer, msg: Odometry) -> None:
+        self.rates.tick(self.settings.node.odom_topic)
+        try:
+            pose = odometry_pose(msg)
+        except InputRejected as err:
+            self._reject(err)
+            return
+        ns = stamp_ns(msg.header)
+        refused = buffer.offer(ns, pose, msg.header.frame_id)
+        if refused is not None:
+            self._reject(InputRejected(f"odometry: {refused}", f"stamp {ns / NS_PER_S:.9f}"))
+            return
+        self._release()
+
+    def _release(self) -> None:
+        if self._closed:
+            return
+        before = sum(self.sync.drops.values())
+        for frame in self.sync.ready():
+            for k in frame.stopped:
+                topic = self.settings.node.camera_topics[k]
+                timeout = self.settings.node.sync.camera_timeout
+                self.warnings(f"camera stopped: {topic}",
+                              f"no image for {timeout} s of header time; frames go on without it (degraded)")
+            self.worker.submit(frame)
+        if sum(self.sync.drops.values()) > before:
+            for reason, n in self.sync.drops.items():
+                self.warnings(reason, f"{n} frame(s) so far")
+
+    # -- worker thread -------------------------------------------------------------------------
+    def _process(self, synced: SyncedFrame) -> None:
+        cfg = self.settings.detector
+        draft = (cfg.model.image_size[1], cfg.model.image_size[0]) if cfg.model.fast_decode else None
+        images: list[CameraInput | None] = []
+        for k, payload in enumerate(synced.cameras):
+            if payload is None:
+                images.append(None)
+                continue
+            try:
+                images.append(camera_input(payload, draft_size=draft))
+            except InputRejected as err:
+                self._reject(InputRejected(err.reason, f"{self.settings.node.camera_topics[k]}: {err.detail}"))
+                images.append(None)
+        frame = Frame(stamp=synced.stamp_ns / NS_PER_S, images=images, points=synced.points, pose=synced.pose)
+        self.get_logger().debug(f"frame {frame.stamp:.9f}: deciding")
+        with self._detector_lock:
+            if self._next_detector_config is not None:
+                self.detector.config, self._next_detector_config = self._next_detector_config, None
+            result = self.detector.process(frame)
+            max_distance = self.detector.config.match.max_distance
+        self.decisions.add(result.reason)
+        if result.keyframe_id is None:
+            return
+        if result.candidates:
+            self._candidates_pub.publish(candidates_msg(result))
+            self._loop_pub.publish(loop_closure_msg(result))
+            self.markers.publish(result, synced.pose, self.poses.frame_id, max_distance)
+            self.loops += 1
+        self.latency.add(time.monotonic() - synced.arrival)
+        self.model_time.add(result.timings.get("preprocess", 0.0) + result.timings.get("network", 0.0))
+
+    def _on_replaced(self, frame: SyncedFrame) -> None:
+        self.drops.add(BUSY)
+        self.warnings(BUSY, "frames arrive faster than the detector describes them; the newest one waits, "
+                            "older ones are dropped")
+
+    def _on_failed(self, frame: SyncedFrame, err: Exception) -> None:
+        self.drops.add(FAILED)
+        self.warnings(f"{FAILED} ({type(err).__name__})",
+                      f"frame {frame.stamp_ns / NS_PER_S:.9f}: {err}; the map is kept, the node goes on")
+
+    # -- parameters, map, diagnostics -----------------------------------------------------
+    def _apply(self, settings: Settings) -> None:
+        self.settings = settings
+        self._next_detector_config = settings.detector  # taken by the worker before its next frame
+        self.sync.config = settings.node.sync
+        self.poses.configure(slop=settings.node.sync.slop, max_gap=settings.node.sync.odom_max_gap)
+
+    def save_map(self, *, timeout: float = -1) -> int:
+        """Save the map to ``map.path`` between two frames; returns the number of places."""
+        path = self.settings.node.map.path
+        if not path:
+            raise MapError("map.path is empty; set it (e.g. -p map.path:=/data/lcpr_map.npz) to save the map")
+        if not self._detector_lock.acquire(timeout=timeout):
+            raise MapError(f"the detector stayed busy for {timeout} s; the map was not saved")
+        try:
+            return save_map(self.detector.map, path)
+        finally:
+            self._detector_lock.release()
+
+    def _on_save_map(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        try:
+            count = self.save_map()
+        except MapError as err:
+            response.success, response.message = False, str(err)
+            return response
+        response.success, response.message = True, f"saved {count} places to {self.settings.node.map.path}"
+        self.get_logger().info(response.message)
+        return response
+
+    def health(self) -> Health:
+        topics = self.settings.node.camera_topics
+        drops = self.drops.snapshot()
+        for reason, n in self.sync.drops.items():
+            drops[reason] = n
+        return Health(
+            rates=self.rates.rates(), totals=dict(self.rates.totals), drops=drops, fixes=self.fixes.snapshot(),
+            decisions=self.decisions.snapshot(), stopped=[topics[k] for k in self.sync.stopped_cameras()],
+            missing={topics[k]: n for k, n in enumerate(self.sync.missing)}, warnings=self.warnings.causes,
+            latency=self.latency.percentiles(50, 90, 99), model=self.model_time.percentiles(50, 90, 99),
+            map_size=len(self.detector.map), session_keyframes=self.detector.session_keyframes, loops=self.loops,
+            sync_pending=self.sync.pending, worker_waiting=self.worker.waiting, worker_busy=self.worker.busy,
+        )
+
+    def _publish_diagnostics(self) -> None:
+        newest = self.sync.newest_stamp
+        if newest is None:
+            sec, nanosec = self.get_clock().now().seconds_nanoseconds()
+        else:
+            sec, nanosec = divmod(newest, NS_PER_S)
+        self._diagnostics_pub.publish(self._diagnostics.build(self.health(), sec, nanosec))
+
+    def close(self) -> None:
+        """Stop taking frames, let the worker finish, then save the map (when configured)."""
+        if self._closed:
+            return
+        self._closed = True
+        log = self.get_logger()
+        if not self.worker.stop(drain=True, timeout=SHUTDOWN_TIMEOUT):
+            log.error(f"the detector is still busy after {SHUTDOWN_TIMEOUT} s")
+        cfg = self.settings.node.map
+        if cfg.path and cfg.save_on_shutdown:
+            try:
+                count = self.save_map(timeout=5.0)
+            except MapError as err:
+                log.error(f"map not saved at shutdown: {err}")
+            else:
+                log.info(f"saved {count} places to {cfg.path}")
+
+
+# -- executable -------------------------------------------------------------------------------
+def _parser() -> argparse.ArgumentParser:
+    return argparse.ArgumentParser(
+        prog="lcpr_node",
+        description="LCPR loop-closure detection node (node name 'lcpr'). Set parameters with "
+                    "--ros-args -p name:=value or --ros-args --params-file config/lcpr.yaml.",
+        epilog="parameters:\n" + describe(all_leaves()),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """``lcpr_node``: 0 after a clean stop (Ctrl-C, SIGTERM), 1 when the node refuses to start."""
+    argv = list(sys.argv if args is None else args)
+    try:
+        user_args = remove_ros_args(argv)[1:]
+    except RuntimeError as err:  # rcl refuses a malformed --ros-args section (RCLInvalidROSArgsError)
+        print(f"lcpr_node: {err}", file=sys.stderr)
+        return 2
+    _parser().parse_args(user_args)
+    with StopOnSignal() as stop:
+        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+        try:
+            try:
+                node = LcprNode()
+            except (ConfigError, MapLoadError) as err:
+                rclpy.logging.get_logger(NODE_NAME).error(f"cannot start: {err}")
+                return 1
+            try:
+                spin_until(node, stop.event)
+            finally:
+                node.get_logger().info("shutting down: finishing the current frame, then saving the map")
+                node.close()
+                node.destroy_node()
+        finally:
+            rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,95 @@
+"""Descriptions, ranges and accepted values of the node's parameters.
+
+Defaults are NOT here: they come from the config dataclasses. A field without an
+entry still becomes a parameter (described by its dataclass and field name), so
+fields added to the core show up without touching this table.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from lcpr_core.describer import PRECISIONS
+from lcpr_core.descriptor_map import INDEX_TYPES
+from lcpr_core.preprocess import PRESETS
+
+from .config import CAMERA_TYPES
+
+INF = math.inf
+BIG = 2**31 - 1
+
+
+@dataclass(frozen=True)
+class ParamDoc:
+    description: str
+    low: float | None = None  # inclusive range (FloatingPointRange / IntegerRange)
+    high: float | None = None
+    choices: tuple[str, ...] = ()  # accepted strings, shown in additional_constraints
+    dynamic: bool = False  # may change while the node runs (others are read-only)
+
+
+DOCS: dict[str, ParamDoc] = {
+    # ---- model (read-only: the network is built once)
+    "model.weights": ParamDoc("released LCPR checkpoint or state dict; empty = seeded random weights (testing only)"),
+    "model.imagenet": ParamDoc("torchvision resnet18 state dict for the ResNet blocks, used when model.weights "
+                               "is empty"),
+    "model.seed": ParamDoc("seed of the random initialisation, used when both weight files are empty", 0, BIG),
+    "model.num_cameras": ParamDoc("cameras in the panorama; must equal the number of camera_topics", 1, 64),
+    "model.image_size": ParamDoc("[height, width] each camera image is resized to; multiples of 32 "
+                                 "(released: 256, 704)"),
+    "model.lidar": ParamDoc("range-image preset of the LiDAR", choices=tuple(sorted(PRESETS))),
+    "model.range_size": ParamDoc("[height, width] of the range image, multiples of 8; [0, 0] = the preset's"),
+    "model.width": ParamDoc("channel multiplier of the network (1.0 = released; must match the weights)", 0.0, 4.0),
+    "model.precision": ParamDoc("inference precision", choices=PRECISIONS),
+    "model.device": ParamDoc("torch device, e.g. cpu or cuda:0"),
+    "model.threads": ParamDoc("torch intra-op threads; 0 = torch's default", 0, 1024),
+    "model.fast_decode": ParamDoc("JPEG draft-mode decoding of compressed images (faster, slightly different pixels)"),
+    # ---- keyframes and matching (may change at run time)
+    "keyframe.min_interval": ParamDoc("s (header stamps) between keyframes", 0.0, 3600.0, dynamic=True),
+    "keyframe.min_distance": ParamDoc("m travelled between keyframes when poses are known; 0 = off",
+                                      0.0, 1e6, dynamic=True),
+    "match.top_k": ParamDoc("candidates per query", 1, 1000, dynamic=True),
+    "match.max_distance": ParamDoc("descriptor L2 distance a candidate must be under (unit vectors: 0..2)",
+                                   0.0, 2.0, dynamic=True),
+    "match.exclude_recent_s": ParamDoc("this session's keyframes newer than this many seconds are not matched",
+                                       0.0, 1e9, dynamic=True),
+    "match.exclude_recent_count": ParamDoc("and neither are the last N keyframes; 0 = off", 0, BIG, dynamic=True),
+    "sensors.require_lidar": ParamDoc("no cloud -> no keyframe; false: an empty range image is used"),
+    # ---- descriptor map (read-only: fixed by the map)
+    "map.dim": ParamDoc("descriptor size stored in the map", 1, 65536),
+    "map.model": ParamDoc("name of the model whose descriptors the map holds; a map file must match it"),
+    "map.index": ParamDoc("search structure", choices=INDEX_TYPES),
+    "map.hnsw_m": ParamDoc("HNSW graph degree (map.index = hnsw)", 1, 1024),
+    "map.hnsw_ef_search": ParamDoc("HNSW search breadth (map.index = hnsw)", 1, 1 << 20),
+    "map.hnsw_ef_construction": ParamDoc("HNSW build breadth (map.index = hnsw)", 1, 1 << 20),
+    "map.path": ParamDoc("descriptor map file (.npz), loaded at start when it exists and saved on ~/save_map "
+                         "and at shutdown; empty = in memory only"),
+    "map.save_on_shutdown": ParamDoc("save the map to map.path when the node stops (Ctrl-C, SIGTERM)"),
+    "session": ParamDoc("source name stored with this run's keyframes"),
+    # ---- topics (read-only)
+    "camera_topics": ParamDoc("camera image topics in rig (nuScenes) order"),
+    "camera_type": ParamDoc("message type of the camera topics; auto: topics ending in /compressed are "
+                            "sensor_msgs/CompressedImage, others sensor_msgs/Image", choices=CAMERA_TYPES),
+    "lidar_topic": ParamDoc("sensor_msgs/PointCloud2 topic"),
+    "odom_topic": ParamDoc("nav_msgs/Odometry topic for poses (markers, keyframe.min_distance); empty = none"),
+    # ---- synchronisation
+    "sync.slop": ParamDoc("s: each camera's image nearest the cloud stamp within this is used", 0.0, 10.0,
+                          dynamic=True),
+    "sync.camera_timeout": ParamDoc("s of header time: a camera silent this long is stopped (frames degraded)",
+                                    0.0, 3600.0, dynamic=True),
+    "sync.max_wait": ParamDoc("s of wall time a cloud waits for camera images stamped after it", 0.0, 10.0,
+                              dynamic=True),
+    "sync.min_cameras": ParamDoc("frames with fewer camera images are dropped", 0, 64, dynamic=True),
+    "sync.odom_max_gap": ParamDoc("s: odometry neighbours at most this far apart are interpolated", 0.0, 60.0,
+                                  dynamic=True),
+    "sync.image_buffer": ParamDoc("images kept per camera for matching", 1, 1000),
+    "sync.max_pending": ParamDoc("clouds waiting for images at most; older ones are dropped", 1, 1000),
+    # ---- diagnostics
+    "diagnostics.period": ParamDoc("s between /diagnostics messages", 0.05, 3600.0),
+    "diagnostics.window": ParamDoc("latest frames in the latency percentiles", 1, 100000),
+}
+
+
+def doc_for(name: str, owner: str) -> ParamDoc:
+    """The entry for ``name``, or a generic one naming the dataclass field it mirrors."""
+    return DOCS.get(name) or ParamDoc(f"{owner}.{name.rsplit('.', 1)[-1]}")

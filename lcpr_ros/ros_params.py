@@ -1,0 +1,90 @@
+"""Declaring the config's parameters on an rclpy node and validating changes at run time."""
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from .errors import ConfigError
+from .params import Leaf, Settings, settings_from
+
+
+def descriptor(leaf: Leaf) -> ParameterDescriptor:
+    doc = leaf.doc
+    desc = ParameterDescriptor(
+        description=doc.description,
+        read_only=not doc.dynamic,
+        additional_constraints=f"one of: {', '.join(doc.choices)}" if doc.choices else "",
+    )
+    if doc.low is not None and doc.high is not None and not leaf.array:
+        if leaf.kind is float:
+            desc.floating_point_range = [FloatingPointRange(from_value=float(doc.low), to_value=float(doc.high))]
+        elif leaf.kind is int:
+            desc.integer_range = [IntegerRange(from_value=int(doc.low), to_value=int(doc.high), step=1)]
+    return desc
+
+
+def declare(node: Node, leaves: Sequence[Leaf]) -> dict[str, Any]:
+    """Declare every leaf (overrides from --ros-args / params files apply) -> Python-typed values.
+
+    A value outside its range or of the wrong type raises ConfigError naming the parameter.
+    """
+    values: dict[str, Any] = {}
+    for leaf in leaves:
+        try:
+            param = node.declare_parameter(leaf.name, leaf.to_ros(leaf.default), descriptor(leaf))
+        except InvalidParameterTypeException as err:
+            hint = " (write a decimal point for a double, e.g. 1.0)" if leaf.kind is float else ""
+            raise ConfigError(f"parameter {leaf.name}: {err}{hint}") from err
+        except InvalidParameterValueException as err:
+            raise ConfigError(f"parameter {leaf.name}: {err}") from err
+        values[leaf.name] = leaf.to_python(param.value)
+    return values
+
+
+def current_values(node: Node, leaves: Sequence[Leaf]) -> dict[str, Any]:
+    return {leaf.name: leaf.to_python(node.get_parameter(leaf.name).value) for leaf in leaves}
+
+
+class RuntimeParameters:
+    """Validates parameter changes by building the configs; applies accepted ones.
+
+    Register after :func:`declare` (declaration would otherwise run the check with
+    half of the parameters missing).
+    """
+
+    def __init__(self, node: Node, leaves: Sequence[Leaf], apply: Callable[[Settings], None]) -> None:
+        self._node = node
+        self._leaves = {leaf.name: leaf for leaf in leaves}
+        self._apply = apply
+        node.add_on_set_parameters_callback(self._check)
+        node.add_post_set_parameters_callback(self._changed)
+
+    def _candidate(self, changes: Sequence[Parameter[Any]]) -> Settings:
+        values = current_values(self._node, list(self._leaves.values()))
+        for param in changes:
+            leaf = self._leaves.get(param.name)
+            if leaf is None:
+                continue
+            try:
+                values[param.name] = leaf.to_python(param.value)
+            except (TypeError, ValueError) as err:
+                raise ConfigError(f"parameter {param.name}: {param.value!r} is not a {leaf.kind.__name__}") from err
+        return settings_from(values)
+
+    def _check(self, changes: list[Parameter[Any]]) -> SetParametersResult:
+        try:
+            self._candidate(changes)
+        except ConfigError as err:
+            return SetParametersResult(successful=False, reason=str(err))
+        return SetParametersResult(successful=True)
+
+    def _changed(self, changes: list[Parameter[Any]]) -> None:
+        settings = self._candidate([])
+        self._apply(settings)
+        names = ", ".join(f"{p.name}={p.value!r}" for p in changes)
+        self._node.get_logger().info(f"parameters changed: {names}")

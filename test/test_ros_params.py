@@ -1,0 +1,158 @@
+"""Parameters mirror the typed config: names, defaults, validation, the params file and the launch file."""
+from __future__ import annotations
+
+import dataclasses
+import random
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import pytest
+import rclpy
+import yaml
+from rclpy.parameter import Parameter
+
+from lcpr_core.detector import DetectorConfig, MatchConfig
+from lcpr_ros.config import NodeConfig, SyncConfig
+from lcpr_ros.errors import ConfigError
+from lcpr_ros.params import all_leaves, build, leaves, settings_from, to_yaml
+from lcpr_ros.ros_params import RuntimeParameters, declare
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGE = "lcpr_loop_closure"
+
+
+def flatten(tree: dict, prefix: str = "") -> dict:
+    out = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            out.update(flatten(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def test_every_config_field_is_a_dotted_parameter_with_the_dataclass_default() -> None:
+    found = {leaf.name: leaf.default for leaf in all_leaves()}
+    assert found["model.weights"] == DetectorConfig().model.weights
+    assert found["model.image_size"] == DetectorConfig().model.image_size
+    assert found["match.top_k"] == MatchConfig().top_k
+    assert found["match.exclude_recent_s"] == 30.0
+    assert found["keyframe.min_interval"] == 0.5
+    assert found["sync.slop"] == SyncConfig().slop
+    assert found["map.path"] == "" and found["map.index"] == "flat"
+    assert found["camera_topics"] == NodeConfig().camera_topics and len(found["camera_topics"]) == 6
+    assert found["odom_topic"] == ""
+    n_fields = sum(1 for _ in leaves(DetectorConfig())) + sum(1 for _ in leaves(NodeConfig()))
+    assert len(found) == n_fields
+
+
+def test_building_the_config_from_parameter_values_round_trips() -> None:
+    values = {leaf.name: leaf.default for leaf in all_leaves()}
+    values["match.top_k"] = 3
+    values["model.image_size"] = [32, 96]
+    settings = settings_from(values)
+    assert settings.detector.match.top_k == 3
+    assert settings.detector.model.image_size == (32, 96)
+    assert settings.node == NodeConfig()
+    assert dataclasses.replace(settings.detector, match=MatchConfig()) == dataclasses.replace(
+        DetectorConfig(model=dataclasses.replace(DetectorConfig().model, image_size=(32, 96))), match=MatchConfig())
+
+
+@pytest.mark.parametrize(("name", "value", "reason"), [
+    ("match.top_k", 0, "top_k"),
+    ("model.precision", "fp16", "accepted: fp32, bf16"),
+    ("model.lidar", "ouster", "unknown LiDAR preset"),
+    ("map.index", "ivf", "accepted: flat, hnsw"),
+    ("camera_type", "jpeg", "accepted: auto, compressed, raw"),
+    ("sync.slop", -1.0, "sync"),
+    ("model.num_cameras", 5, "model.num_cameras=5"),
+])
+def test_an_invalid_value_is_refused_with_the_dataclass_reason(name: str, value: object, reason: str) -> None:
+    values = {leaf.name: leaf.default for leaf in all_leaves()}
+    values[name] = value
+    with pytest.raises(ConfigError, match=reason.replace(".", r"\.")):
+        settings_from(values)
+
+
+def test_a_config_field_of_an_unsupported_type_is_a_programming_error() -> None:
+    @dataclasses.dataclass(frozen=True)
+    class Bad:
+        values: dict = dataclasses.field(default_factory=dict)
+
+    with pytest.raises(TypeError, match="cannot be a ROS parameter"):
+        leaves(Bad())
+
+
+def test_the_params_file_lists_every_parameter_with_its_default() -> None:
+    data = yaml.safe_load((REPO / "config" / "lcpr.yaml").read_text())
+    (node_key,) = data
+    assert node_key in ("/**", "lcpr", "/lcpr")
+    params = flatten(data[node_key]["ros__parameters"])
+    expected = {leaf.name: (list(leaf.default) if leaf.array else leaf.default) for leaf in all_leaves()}
+    assert params == expected
+    # and the generator writes the same content (no duplicate group keys)
+    assert flatten(yaml.safe_load(to_yaml(all_leaves()))["/**"]["ros__parameters"]) == expected
+
+
+def test_the_launch_file_starts_lcpr_node_named_lcpr_with_the_params_file_and_a_weights_argument() -> None:
+    root = ET.parse(REPO / "launch" / "lcpr.launch.xml").getroot()
+    assert root.tag == "launch"
+    args = {a.get("name"): a for a in root.findall("arg")}
+    assert "weights" in args
+    (node,) = root.findall("node")
+    assert (node.get("pkg"), node.get("exec"), node.get("name")) == (PACKAGE, "lcpr_node", "lcpr")
+    params = node.findall("param")
+    files = [p.get("from") for p in params if p.get("from")]
+    assert files == [f"$(find-pkg-share {PACKAGE})/config/lcpr.yaml"]
+    assert (REPO / "config" / "lcpr.yaml").is_file()
+    named = {p.get("name"): p.get("value") for p in params if p.get("name")}
+    assert named["model.weights"] == "$(var weights)"
+    assert set(named) <= {leaf.name for leaf in all_leaves()}
+
+
+# -- on a real rclpy node (no DDS traffic) ---------------------------------------------------------
+@pytest.fixture
+def context():
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=random.randint(1, 100))
+    yield ctx
+    rclpy.try_shutdown(context=ctx)
+
+
+def test_overrides_outside_a_range_or_of_the_wrong_type_refuse_the_start(context) -> None:
+    for override, reason in ((Parameter("match.top_k", value=0), "out of range"),
+                             (Parameter("match.max_distance", value=1), "decimal point"),
+                             (Parameter("match.max_distance", value=3.0), "out of range")):
+        node = rclpy.create_node("lcpr", context=context, parameter_overrides=[override])
+        try:
+            with pytest.raises(ConfigError, match=reason):
+                declare(node, all_leaves())
+        finally:
+            node.destroy_node()
+
+
+def test_run_time_changes_are_validated_by_building_the_config(context) -> None:
+    node = rclpy.create_node("lcpr", context=context)
+    applied = []
+    try:
+        leaves_ = all_leaves()
+        settings_from(declare(node, leaves_))
+        RuntimeParameters(node, leaves_, applied.append)
+        ok = node.set_parameters([Parameter("match.top_k", value=7)])[0]
+        assert ok.successful and applied[-1].detector.match.top_k == 7
+        refused = node.set_parameters([Parameter("sync.min_cameras", value=7)])[0]
+        assert not refused.successful and "sync.min_cameras=7" in refused.reason
+        out_of_range = node.set_parameters([Parameter("match.max_distance", value=5.0)])[0]
+        assert not out_of_range.successful and "out of range" in out_of_range.reason
+        read_only = node.set_parameters([Parameter("model.weights", value="x.pth")])[0]
+        assert not read_only.successful and "read-only" in read_only.reason
+        assert node.get_parameter("match.max_distance").value == 1.0
+        assert len(applied) == 1
+        descriptor = node.describe_parameter("match.top_k")
+        assert descriptor.description and descriptor.integer_range[0].from_value == 1
+    finally:
+        node.destroy_node()
+
+
+def test_build_keeps_defaults_for_absent_names() -> None:
+    assert build(SyncConfig, {"sync.slop": 0.1}, "sync.") == SyncConfig(slop=0.1)

@@ -1,0 +1,152 @@
+"""lcpr_replay publishes a rosbag2 over DDS with the original header stamps and bytes."""
+from __future__ import annotations
+
+import os
+import random
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CompressedImage, PointCloud2
+
+from lcpr_ros.harness import synthetic_place
+from lcpr_ros.replay import message_class, replay
+from msg_tools.bags import BagWriter
+from msg_tools.compressed import compressed_from_bytes
+from msg_tools.frames import CameraModel
+from msg_tools.pointcloud import array_to_pointcloud2
+from msg_tools.types import Stamp
+
+REPO = Path(__file__).resolve().parents[1]
+DOMAIN = random.randint(1, 100)
+PREFIX = f"/r{random.randint(0, 10**6)}"
+CAMERA = f"{PREFIX}/CAM_FRONT/image/compressed"
+LIDAR = f"{PREFIX}/LIDAR_TOP/points"
+STAMPS = [Stamp(1_532_402_927, 123_456_789 + 200_000_000 * i) for i in range(4)]  # exact, spans 0.6 s
+RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+
+
+@pytest.fixture(scope="module")
+def bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("replay") / "bag"
+    camera = CameraModel("CAM_FRONT", "cam", 128, 48, np.eye(3), np.eye(4))
+    with BagWriter(path) as writer:
+        for i, stamp in enumerate(STAMPS):
+            place = synthetic_place(i)
+            writer.write(CAMERA, compressed_from_bytes(place.jpegs[0], frame_id="cam", stamp=stamp))
+            writer.write(LIDAR, array_to_pointcloud2(place.cloud, frame_id="lidar", stamp=stamp))
+        writer.write_static_transforms([camera], "lidar", np.eye(4))  # tf2_msgs: not installed here
+    return path
+
+
+@pytest.fixture(scope="module")
+def ros() -> Iterator[tuple[Context, Node]]:
+    context = Context()
+    rclpy.init(context=context, domain_id=DOMAIN)
+    node = rclpy.create_node("replay_test", context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    thread = threading.Thread(target=executor.spin, daemon=True)
+    thread.start()
+    try:
+        yield context, node
+    finally:
+        executor.shutdown(timeout_sec=5)
+        thread.join(5)
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
+class Received:
+    def __init__(self, node: Node) -> None:
+        self.images: list[CompressedImage] = []
+        self.clouds: list[PointCloud2] = []
+        self._subs = [node.create_subscription(CompressedImage, CAMERA, self.images.append, RELIABLE),
+                      node.create_subscription(PointCloud2, LIDAR, self.clouds.append, RELIABLE)]
+        self._node = node
+
+    def close(self) -> None:
+        for sub in self._subs:
+            self._node.destroy_subscription(sub)
+
+    def wait(self, images: int, clouds: int, timeout: float = 20.0) -> bool:
+        deadline = time.monotonic() + timeout
+        while (len(self.images), len(self.clouds)) != (images, clouds):
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.02)
+        return True
+
+
+def stamp_of(msg: object) -> Stamp:
+    return Stamp(msg.header.stamp.sec, msg.header.stamp.nanosec)
+
+
+def test_a_replayed_bag_arrives_with_its_original_header_stamps_and_bytes(ros: tuple[Context, Node],
+                                                                          bag: Path) -> None:
+    _, node = ros
+    received = Received(node)
+    publisher_node = rclpy.create_node("replayer", context=ros[0])
+    try:
+        stats = replay(publisher_node, bag, rate=0, wait_subscribers=10, log=lambda text: None)
+        assert received.wait(4, 4)
+    finally:
+        publisher_node.destroy_node()
+        received.close()
+    assert stats.published == {CAMERA: 4, LIDAR: 4}
+    assert stats.skipped == {"/tf_static": "tf2_msgs/msg/TFMessage is not installed"}
+    assert [stamp_of(m) for m in received.clouds] == STAMPS
+    assert [stamp_of(m) for m in received.images] == STAMPS
+    assert bytes(received.images[2].data) == synthetic_place(2).jpegs[0]
+    assert received.clouds[1].width == len(synthetic_place(1).cloud)
+
+
+def test_the_rate_paces_publishing_by_the_bag_times(ros: tuple[Context, Node], bag: Path) -> None:
+    publisher_node = rclpy.create_node("paced", context=ros[0])
+    try:
+        real_time = replay(publisher_node, bag, rate=1.0, log=lambda text: None)
+        double = replay(publisher_node, bag, rate=2.0, log=lambda text: None)
+    finally:
+        publisher_node.destroy_node()
+    assert 0.55 <= real_time.seconds < 3.0
+    assert 0.25 <= double.seconds < real_time.seconds
+
+
+def test_message_types_are_looked_up_from_their_names() -> None:
+    assert message_class("sensor_msgs/msg/PointCloud2") is PointCloud2
+    assert message_class("no_such_pkg/msg/Thing") is None
+
+
+def run_replay(*args: str) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "ROS_DOMAIN_ID": str(DOMAIN),
+           "PYTHONPATH": os.pathsep.join([str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])])}
+    return subprocess.run([sys.executable, "-m", "lcpr_ros.replay", *args], cwd=REPO, env=env, text=True,
+                          capture_output=True, timeout=60)
+
+
+def test_the_lcpr_replay_command_publishes_only_the_chosen_topics(ros: tuple[Context, Node], bag: Path) -> None:
+    received = Received(ros[1])
+    try:
+        done = run_replay(str(bag), "--rate", "0", "--topics", LIDAR, "--no-progress", "--wait-subscribers", "10")
+        assert done.returncode == 0, done.stderr
+        assert received.wait(0, 4)
+    finally:
+        received.close()
+    assert "published 4 messages on 1 topics" in done.stderr
+    assert [stamp_of(m) for m in received.clouds] == STAMPS
+
+
+def test_the_lcpr_replay_command_refuses_a_topic_the_bag_lacks(bag: Path) -> None:
+    done = run_replay(str(bag), "--topics", "/nope", "--no-progress")
+    assert done.returncode == 1
+    assert "/nope" in done.stderr and "not in" in done.stderr
