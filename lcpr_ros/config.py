@@ -13,6 +13,7 @@ from lcpr_core.detector import DetectorConfig
 from msg_tools.frames import NUSCENES_TOPICS
 
 CAMERA_TYPES = ("auto", "compressed", "raw")
+INPUT_QOS = ("sensor_data", "reliable")
 
 
 def _check(ok: bool, message: str) -> None:
@@ -66,6 +67,7 @@ class NodeConfig:
     camera_type: str = "auto"  # auto (".../compressed" -> CompressedImage) | compressed | raw
     lidar_topic: str = NUSCENES_TOPICS.lidar
     odom_topic: str = ""  # nav_msgs/Odometry; "" = no poses (no markers, no distance keyframing)
+    input_qos: str = "sensor_data"  # sensor_data (best effort) | reliable (bag replay: lose nothing)
     sync: SyncConfig = field(default_factory=SyncConfig)
     map: MapFileConfig = field(default_factory=MapFileConfig)
     diagnostics: DiagnosticsConfig = field(default_factory=DiagnosticsConfig)
@@ -73,6 +75,7 @@ class NodeConfig:
     def __post_init__(self) -> None:
         _check(self.camera_type in CAMERA_TYPES,
                f"camera_type={self.camera_type!r}; accepted: {', '.join(CAMERA_TYPES)}")
+        _check(self.input_qos in INPUT_QOS, f"input_qos={self.input_qos!r}; accepted: {', '.join(INPUT_QOS)}")
         _check(len(self.camera_topics) >= 1 and all(self.camera_topics),
                f"camera_topics={list(self.camera_topics)}; give one non-empty topic per camera")
         _check(len(set(self.camera_topics)) == len(self.camera_topics),

@@ -54,8 +54,8 @@ class Truth:
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--frames", type=int, default=160, help="keyframes of the drive (0.5 s, 5 m apart)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the synthetic city and drive")
+    p.add_argument("--frames", type=int, default=200, help="keyframes of the drive (0.5 s, 5 m apart)")
+    p.add_argument("--seed", type=int, default=1, help="seed of the synthetic city and drive")
     p.add_argument("--image-size", default="640x360", help="rendered camera size WxH")
     weights = p.add_mutually_exclusive_group()
     weights.add_argument("--weights", default=None, help="LCPR checkpoint (default: the bundled trained one)")
@@ -93,9 +93,11 @@ def start_node(args: argparse.Namespace, weights: str, domain: int, log: Path) -
         "camera_topics": "[" + ",".join(NUSCENES_TOPICS.cameras) + "]",
         "lidar_topic": NUSCENES_TOPICS.lidar,
         "odom_topic": NUSCENES_TOPICS.odom,
-        "model.weights": weights,
+        "input_qos": "reliable",  # a replay should lose nothing; live sensors use sensor_data
         "model.threads": "2",
     }
+    if weights:  # an empty value is not valid --ros-args syntax; "" is the default anyway
+        params["model.weights"] = weights
     if args.max_distance is not None:
         params["match.max_distance"] = str(args.max_distance)
     cmd = [sys.executable, "-m", "lcpr_ros.node", "--ros-args"]

@@ -55,6 +55,7 @@ RELEASE_PERIOD = 0.05  # s between checks for clouds whose wait for images ran o
 SHUTDOWN_TIMEOUT = 60.0  # s the worker may take to finish its frames at shutdown
 
 #: Candidate topics: every candidate must arrive.
+RELIABLE_INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
 CANDIDATE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
                            durability=DurabilityPolicy.VOLATILE)
 
@@ -84,6 +85,7 @@ class LcprNode(Node):
         self._detector_lock = threading.Lock()
         self._next_detector_config: DetectorConfig | None = None
 
+        self._input_qos = RELIABLE_INPUT_QOS if node_cfg.input_qos == "reliable" else qos_profile_sensor_data
         self.poses, self.markers = self._pose_parts(node_cfg)  # first: see _pose_parts
         self.sync = Synchroniser(node_cfg.sync, len(node_cfg.camera_topics), poses=self.poses)
 
@@ -97,8 +99,8 @@ class LcprNode(Node):
             compressed = node_cfg.compressed(k)
             self._payload.append(compressed_payload if compressed else raw_payload)
             self.create_subscription(CompressedImage if compressed else Image, topic, partial(self._on_image, k),
-                                     qos_profile_sensor_data)
-        self.create_subscription(PointCloud2, node_cfg.lidar_topic, self._on_cloud, qos_profile_sensor_data)
+                                     self._input_qos)
+        self.create_subscription(PointCloud2, node_cfg.lidar_topic, self._on_cloud, self._input_qos)
         self.create_service(Trigger, "~/save_map", self._on_save_map)
         self.create_timer(RELEASE_PERIOD, self._release)
         self.create_timer(node_cfg.diagnostics.period, self._publish_diagnostics)
@@ -120,7 +122,7 @@ class LcprNode(Node):
         if not cfg.odom_topic:
             return NoPoses(), NoMarkers()
         buffer = OdometryBuffer(slop=cfg.sync.slop, max_gap=cfg.sync.odom_max_gap)
-        self.create_subscription(Odometry, cfg.odom_topic, partial(self._on_odom, buffer), qos_profile_sensor_data)
+        self.create_subscription(Odometry, cfg.odom_topic, partial(self._on_odom, buffer), self._input_qos)
         return buffer, LoopMarkers(self.create_publisher(MarkerArray, "~/markers", CANDIDATE_QOS))
 
     # -- inputs (callback thread) ---------------------------------------------------------

@@ -13,7 +13,7 @@ from lcpr_core.describer import PRECISIONS
 from lcpr_core.descriptor_map import INDEX_TYPES
 from lcpr_core.preprocess import PRESETS
 
-from .config import CAMERA_TYPES
+from .config import CAMERA_TYPES, INPUT_QOS
 
 INF = math.inf
 BIG = 2**31 - 1
@@ -71,6 +71,8 @@ DOCS: dict[str, ParamDoc] = {
     "camera_type": ParamDoc("message type of the camera topics; auto: topics ending in /compressed are "
                             "sensor_msgs/CompressedImage, others sensor_msgs/Image", choices=CAMERA_TYPES),
     "lidar_topic": ParamDoc("sensor_msgs/PointCloud2 topic"),
+    "input_qos": ParamDoc("QoS of the sensor subscriptions: sensor_data (best effort, the live default) or "
+                          "reliable (a replayed bag loses nothing)", choices=INPUT_QOS),
     "odom_topic": ParamDoc("nav_msgs/Odometry topic for poses (markers, keyframe.min_distance); empty = none"),
     # ---- synchronisation
     "sync.slop": ParamDoc("s: each camera's image nearest the cloud stamp within this is used", 0.0, 10.0,
