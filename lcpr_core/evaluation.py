@@ -41,7 +41,7 @@ from msg_tools.ground_truth import revisit_pairs
 
 from .atomic import atomic_path
 from .errors import InputShapeError
-from .metrics import PRResult, precision_recall, recall_at_n
+from .metrics import PRResult, pr_sweep, precision_recall, recall_at_n
 
 __all__ = [
     "GroundTruth", "LatencyStats", "MethodResult", "MethodRun", "OperatingPoint", "ProtocolResult",
@@ -206,33 +206,6 @@ def recall_at_full_precision(pr: PRResult | None) -> float | None:
         return None
     perfect = pr.precision >= 1.0
     return float(pr.recall[perfect].max()) if perfect.any() else 0.0
-
-
-def pr_sweep(distances: np.ndarray, correct: np.ndarray, *, num_positives: int, num_queries: int) -> PRResult | None:
-    """Top-1 precision/recall over every distinct distance, as :func:`lcpr_core.metrics.precision_recall`
-    computes it, but from given top-1 distances (inf = the query got no candidate).
-
-    None when no query is positive or none got a candidate.
-    """
-    d = np.asarray(distances, np.float64)
-    ok = np.asarray(correct, bool)
-    if d.shape != ok.shape or d.ndim != 1:
-        raise InputShapeError(f"distances {d.shape} and correct {ok.shape}; expected two (Q,) arrays")
-    predicted = np.isfinite(d)
-    if num_positives <= 0 or not predicted.any():
-        return None
-    order = np.argsort(d[predicted], kind="stable")
-    dist, ok = d[predicted][order], ok[predicted][order]
-    tp, fp = np.cumsum(ok), np.cumsum(~ok)
-    last = np.r_[np.flatnonzero(np.diff(dist) > 0), len(dist) - 1]  # last query at each distinct distance
-    tp, fp, thresholds = tp[last], fp[last], dist[last]
-    precision = tp / (tp + fp)
-    recall = tp / num_positives
-    denom = precision + recall
-    f1 = np.divide(2 * precision * recall, denom, out=np.zeros_like(denom), where=denom > 0)
-    best = int(np.argmax(f1))
-    return PRResult(thresholds=thresholds, precision=precision, recall=recall, f1=f1, max_f1=float(f1[best]),
-                    max_f1_threshold=float(thresholds[best]), num_queries=num_queries, num_positives=num_positives)
 
 
 def ranked_protocol(

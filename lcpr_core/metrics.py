@@ -105,27 +105,37 @@ def precision_recall(
     if positives == 0:
         raise ValueError(f"no query has a database entry within {threshold} m; recall is undefined")
 
-    order = np.argsort(top_dist, kind="stable")
-    dist, ok = top_dist[order], correct[order]
-    tp = np.cumsum(ok)
-    fp = np.cumsum(~ok)
+    result = pr_sweep(top_dist, correct, num_positives=positives, num_queries=len(qd))
+    assert result is not None  # positives > 0 and every query has a (finite) top-1 distance
+    return result
+
+
+def pr_sweep(distances: np.ndarray, correct: np.ndarray, *, num_positives: int, num_queries: int) -> PRResult | None:
+    """Top-1 precision/recall over every distinct distance threshold.
+
+    distances: (Q,) top-1 descriptor distances, inf where a query got no candidate;
+    correct: (Q,) whether that top-1 is a true match; recall is TP / ``num_positives``.
+    None when no query is positive or none got a candidate.
+    """
+    d = np.asarray(distances, np.float64)
+    ok = np.asarray(correct, bool)
+    if d.shape != ok.shape or d.ndim != 1:
+        raise ValueError(f"distances {d.shape} and correct {ok.shape}; expected two (Q,) arrays")
+    predicted = np.isfinite(d)
+    if num_positives <= 0 or not predicted.any():
+        return None
+    order = np.argsort(d[predicted], kind="stable")
+    dist, ok = d[predicted][order], ok[predicted][order]
+    tp, fp = np.cumsum(ok), np.cumsum(~ok)
     last = np.r_[np.flatnonzero(np.diff(dist) > 0), len(dist) - 1]  # last query at each distinct distance
     tp, fp, thresholds = tp[last], fp[last], dist[last]
     precision = tp / (tp + fp)
-    recall = tp / positives
+    recall = tp / num_positives
     denom = precision + recall
     f1 = np.divide(2 * precision * recall, denom, out=np.zeros_like(denom), where=denom > 0)
     best = int(np.argmax(f1))
-    return PRResult(
-        thresholds=thresholds,
-        precision=precision,
-        recall=recall,
-        f1=f1,
-        max_f1=float(f1[best]),
-        max_f1_threshold=float(thresholds[best]),
-        num_queries=len(qd),
-        num_positives=positives,
-    )
+    return PRResult(thresholds=thresholds, precision=precision, recall=recall, f1=f1, max_f1=float(f1[best]),
+                    max_f1_threshold=float(thresholds[best]), num_queries=num_queries, num_positives=num_positives)
 
 
 def plot_pr_curve(result: PRResult, path: str | os.PathLike[str], *, title: str = "Precision-recall (top-1)") -> None:

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from lcpr_core.atomic import write_bytes_atomic
-from lcpr_core.evaluation import pr_sweep
+from lcpr_core.metrics import pr_sweep
 from lcpr_core.metrics import plot_pr_curve
 from lcpr_core.pretrained import default_weights
 from msg_tools.frames import NUSCENES_TOPICS
