@@ -11,12 +11,13 @@ setup(
     description="Learned loop-closure detection (LCPR, VSeq2PC) for ROS 2 SLAM stacks",
     license="MIT",
     python_requires=">=3.10",
-    packages=find_packages(include=["lcpr_core", "lcpr_core.*", "lcpr_ros", "lcpr_ros.*", "msg_tools", "msg_tools.*"]),
+    packages=find_packages(include=["lcpr_core", "lcpr_core.*", "lcpr_ros", "lcpr_ros.*", "msg_tools", "msg_tools.*", "vseq2pc_ros", "vseq2pc_ros.*"]),
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),
         (f"share/{PACKAGE}/launch", glob("launch/*.launch.xml")),
+        (f"share/{PACKAGE}/weights", glob("weights/*.pth")),
     ],
     install_requires=[
         # Pinned: an unpinned torch pulls several GB of CUDA packages onto CPU machines.
@@ -44,6 +45,8 @@ setup(
             "lcpr_node = lcpr_ros.node:main",
             "lcpr_replay = lcpr_ros.replay:main",
             "lcpr_eval = lcpr_ros.evaluate:main",
+            "vseq2pc_node = vseq2pc_ros.node:main",
+            "lcpr_train = lcpr_core.training.cli:main",
             "msg_tools_nuscenes2bag = msg_tools.convert.nuscenes:main",
             "msg_tools_kitti2bag = msg_tools.convert.kitti:main",
             "msg_tools_baginfo = msg_tools.convert.baginfo:main",

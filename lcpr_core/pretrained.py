@@ -1,12 +1,13 @@
 """Where the bundled trained weights live (small, trained on the synthetic city; see README)."""
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 BUNDLED_NAME = "lcpr_synth_narrow.pth"
 _CANDIDATES = (
-    Path(__file__).resolve().parent / "weights" / BUNDLED_NAME,  # installed as package data
     Path(__file__).resolve().parents[1] / "weights" / BUNDLED_NAME,  # a source checkout
+    Path(sys.prefix) / "share" / "lcpr_loop_closure" / "weights" / BUNDLED_NAME,  # pip / colcon data_files
 )
 
 

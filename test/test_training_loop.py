@@ -1,0 +1,89 @@
+"""The training loop on tiny hand-made data: a step learns, checkpoints load, resume counts on."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from lcpr_core import ModelConfig, build_model
+from lcpr_core.describer import Describer, checkpoint_config
+from lcpr_core.training import Trainer, TrainingData, export_weights, open_cache
+from lcpr_core.training.mining import Triplet
+from training_fixtures import TINY, tiny_config, write_tiny_cache
+
+
+@pytest.fixture
+def data(tmp_path) -> TrainingData:
+    return TrainingData.from_cache(open_cache(write_tiny_cache(tmp_path / "cache")), tiny_config().split)
+
+
+def quiet(_: str) -> None:
+    pass
+
+
+def test_a_few_steps_on_one_batch_decrease_the_triplet_loss(data, tmp_path):
+    trainer = Trainer(data, tiny_config(lr=1e-3), tmp_path / "run", progress=False, echo=quiet)
+    split = data.split
+    q = int(split.train[0])
+    batch = [Triplet(query=q, positive=int(split.positives(q)[0]), negatives=tuple(split.negatives(q)[:3].tolist()))]
+    trainer.model.train()
+    losses = [trainer.step(batch) for _ in range(6)]
+    assert losses[-1] < losses[0]
+
+
+def test_training_writes_loadable_released_format_checkpoints_and_a_curve(data, tmp_path):
+    out = tmp_path / "run"
+    history = Trainer(data, tiny_config(epochs=1), out, progress=False, echo=quiet).fit()
+    assert [h["epoch"] for h in history] == [0, 1]
+    assert {"recall@1", "recall@5", "recall@10"} <= set(history[1]) and history[1]["loss"] is not None
+    for name in ("init.pth", "last.pth", "best.pth", "curve.png", "history.json"):
+        assert (out / name).is_file(), name
+    ckpt = torch.load(out / "best.pth", weights_only=True)
+    assert {"epoch", "net", "scheduler", "config"} <= set(ckpt) and ckpt["epoch"] == 1
+    model = build_model(ModelConfig(weights=str(out / "best.pth")))  # width and sizes from the file
+    assert model.width == TINY.width and model.image_size == TINY.image_size and model.num_cameras == 2
+    assert model.range_size == TINY.range_size
+    assert all(torch.equal(model.state_dict()[k], v) for k, v in ckpt["net"].items())
+
+
+def test_resume_continues_the_epoch_count_and_history(data, tmp_path):
+    out = tmp_path / "run"
+    Trainer(data, tiny_config(epochs=1), out, progress=False, echo=quiet).fit()
+    lr_after_one = torch.load(out / "last.pth", weights_only=True)["optimizer"]["param_groups"][0]["lr"]
+    again = Trainer(data, tiny_config(epochs=2), out, progress=False, echo=quiet)
+    history = again.fit(resume=True)
+    assert [h["epoch"] for h in history] == [0, 1, 2]
+    assert again.epoch == 2 and torch.load(out / "last.pth", weights_only=True)["epoch"] == 2
+    assert history[2]["lr"] == pytest.approx(lr_after_one)
+
+
+def test_resume_refuses_a_run_of_another_width(data, tmp_path):
+    out = tmp_path / "run"
+    Trainer(data, tiny_config(epochs=1), out, progress=False, echo=quiet).fit()
+    wider = dataclasses.replace(tiny_config(epochs=2), inputs=dataclasses.replace(TINY, width=0.25))
+    with pytest.raises(Exception, match="width"):
+        Trainer(data, wider, out, progress=False, echo=quiet).fit(resume=True)
+
+
+def test_the_checkpoint_config_roundtrips_into_the_describer_and_a_float16_export(data, tmp_path):
+    out = tmp_path / "run"
+    trainer = Trainer(data, tiny_config(epochs=1), out, progress=False, echo=quiet)
+    trainer.fit()
+    entry = checkpoint_config(out / "best.pth")
+    assert entry == {"width": 0.125, "num_cameras": 2, "image_size": [32, 64], "range_size": [8, 64],
+                     "lidar": "nuscenes_lidar_top"}
+    describer = Describer(ModelConfig(weights=str(out / "best.pth")))
+    assert describer.config.image_size == (32, 64) and describer.config.range_preset.width == 64
+    assert describer.config.width == 0.125
+    small = tmp_path / "small.pth"
+    export_weights(out / "best.pth", small)
+    payload = torch.load(small, weights_only=True)
+    assert "optimizer" not in payload and payload["net"]["conv1_i.weight"].dtype == torch.float16
+    half = build_model(ModelConfig(weights=str(small)))
+    full = build_model(ModelConfig(weights=str(out / "best.pth")))
+    images, ranges = data.inputs([0, 5])
+    with torch.inference_mode():
+        assert np.allclose(half(images, ranges).numpy(), full(images, ranges).numpy(), atol=2e-2)
+    assert checkpoint_config(tmp_path / "run" / "init.pth") == entry
