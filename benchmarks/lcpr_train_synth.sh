@@ -30,3 +30,11 @@ $PY -m lcpr_ros.evaluate "$OUT/synth_s7.bag" --weights "$OUT/lcpr_synth_narrow.p
     --out "$OUT/heldout_trained"
 $PY -m lcpr_ros.evaluate "$OUT/synth_s7.bag" --weights "$OUT/run/init.pth" --threads 2 --quiet \
     --no-scan-context --out "$OUT/heldout_init"
+
+# 5. operating threshold for the node (lcpr_core.pretrained.BUNDLED_MAX_DISTANCE): the max-F1
+#    threshold of the online protocol on a validation city of its own (seed 3)
+[ -d "$OUT/synth_s3.bag" ] || $PY -m msg_tools.synth.cli --seed 3 --frames 300 --image-size 400x225 \
+    --workers 2 --no-progress --out "$OUT/synth_s3.bag"
+$PY -m lcpr_ros.evaluate "$OUT/synth_s3.bag" --weights "$OUT/lcpr_synth_narrow.pth" --threads 2 --quiet \
+    --out "$OUT/val_s3"
+$PY -c "import json, sys; r = json.load(open(sys.argv[1])); print('max-F1 threshold:', r['methods'][0]['online']['max_f1_threshold'])" "$OUT/val_s3/report.json"

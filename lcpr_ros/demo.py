@@ -27,7 +27,7 @@ import numpy as np
 from lcpr_core.atomic import write_bytes_atomic
 from lcpr_core.metrics import pr_sweep
 from lcpr_core.metrics import plot_pr_curve
-from lcpr_core.pretrained import default_weights
+from lcpr_core.pretrained import BUNDLED_MAX_DISTANCE, default_weights
 from msg_tools.frames import NUSCENES_TOPICS
 from msg_tools.ground_truth import revisit_pairs
 
@@ -61,7 +61,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     weights = p.add_mutually_exclusive_group()
     weights.add_argument("--weights", default=None, help="LCPR checkpoint (default: the bundled trained one)")
     weights.add_argument("--seeded", action="store_true", help="use the seeded random initialisation")
-    p.add_argument("--max-distance", type=float, default=None, help="match.max_distance for the node")
+    p.add_argument("--max-distance", type=float, default=None,
+                   help=f"match.max_distance for the node (bundled weights: {BUNDLED_MAX_DISTANCE}, chosen on a "
+                        "validation city; otherwise the node's default)")
     p.add_argument("--rate", type=float, default=1.0, help="replay speed (1.0 = real time)")
     p.add_argument("--out", type=Path, default=Path("out/demo"), help="working folder")
     p.add_argument("--startup-timeout", type=float, default=120.0, help="s to wait for the node")
@@ -117,6 +119,8 @@ def run(args: argparse.Namespace) -> int:
 
     args.out.mkdir(parents=True, exist_ok=True)
     weights = "" if args.seeded else (args.weights or default_weights() or "")
+    if args.max_distance is None and weights and weights == default_weights():
+        args.max_distance = BUNDLED_MAX_DISTANCE
     bag, truth = make_drive(args)
     domain = random.randint(1, 100)
     os.environ["ROS_DOMAIN_ID"] = str(domain)
@@ -182,7 +186,7 @@ def report(args, truth: Truth, out, detector: dict, inputs: dict, replay_s: floa
     pr = pr_sweep(dist, ok, num_positives=n_true, num_queries=len(truth.stamps)) if len(dist) else None
     plot = args.out / "pr_curve.png"
     if pr is not None:
-        plot_pr_curve(pr, plot, title=f"lcpr_node on a synthetic drive ({weights.split('/')[-1]})")
+        plot_pr_curve(pr, plot, title="lcpr_node on the demo drive (top-1)")
 
     print(f"\nLCPR loop closure through DDS: {len(truth.stamps)} keyframes replayed in {replay_s:.0f} s")
     print(f"  weights:            {weights}")

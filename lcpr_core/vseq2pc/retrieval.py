@@ -1,0 +1,467 @@
+"""The LiDAR scan database of VSeq2PC and its search.
+
+Each scan is stored as its 8 slice descriptors (8 x 288, slice s = the 90-degree
+window starting at sector 135 + 45 s). A query (a sequence descriptor, 288) is scored
+against every allowed scan in one batched pass: the descriptor model's head on
+|D_seq - D_slice| for all N x 8 slices, the scan's logit being the maximum over its
+slices. Optionally a FAISS prefilter first keeps the M scans with the smallest
+min-slice L2 distance and the head scores only those (approximate: the head is not a
+function of the L2 distance).
+
+Memory: descriptors live once, inside a FAISS IndexFlatL2 of N x 8 rows
+(N * 9216 bytes: 0.92 GB for 100k scans); per scan 8 + 8 + 128 bytes of id, stamp and
+pose. A search allocates at most ``chunk_scans`` x 8 x (288 + 128) floats at a time.
+
+Files: one .npz (no pickle), written atomically, with a JSON header naming the
+format, schema version and the descriptor weights that made the descriptors.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import faiss
+import numpy as np
+import torch
+
+from ..atomic import atomic_path
+from ..errors import InputShapeError, MapError, MapSchemaError
+from ..models import DescriptorModel
+from ..preprocess.structure import structure_feature
+from .net import DESCRIPTOR_DIM, SLICES, Vseq2pcNet
+from .sequence import SequenceBatch
+
+__all__ = ["DATABASE_SCHEMA_VERSION", "ScanDatabase", "ScanMatch", "SearchConfig", "Vseq2pcMap", "head_logits"]
+
+DATABASE_SCHEMA_VERSION = 1
+_FORMAT = "lcpr_core.vseq2pc_map"
+_NPZ_KEYS = ("header", "descriptors", "ids", "stamps", "poses")
+
+
+@dataclass(frozen=True)
+class SearchConfig:
+    """k: candidates per query. exclude_recent_s: scans stamped later than query stamp minus this are
+    skipped (None = no time rule). exclude_recent_rows: with a query row, the scans at that row, after
+    it, and the this-many before it are skipped (a frame gap; 0 = only the row itself and later ones).
+    prefilter: None = exact head on every scan; M = FAISS top-M scans by min-slice L2 distance first.
+    chunk_scans: scans per batched pass (bounds memory)."""
+
+    k: int = 10
+    exclude_recent_s: float | None = 30.0
+    exclude_recent_rows: int = 0
+    prefilter: int | None = None
+    chunk_scans: int = 4096
+
+    def __post_init__(self) -> None:
+        if isinstance(self.k, bool) or not isinstance(self.k, int) or self.k < 1:
+            raise ValueError(f"k={self.k!r}; expected a positive integer")
+        if self.exclude_recent_s is not None and not self.exclude_recent_s >= 0:
+            raise ValueError(f"exclude_recent_s={self.exclude_recent_s!r}; expected seconds >= 0 or None")
+        if self.exclude_recent_rows < 0:
+            raise ValueError(f"exclude_recent_rows={self.exclude_recent_rows!r}; expected >= 0")
+        if self.prefilter is not None and self.prefilter < 1:
+            raise ValueError(f"prefilter={self.prefilter!r}; expected None (exact) or a positive scan count")
+        if self.chunk_scans < 1:
+            raise ValueError(f"chunk_scans={self.chunk_scans!r}; expected a positive scan count")
+
+
+@dataclass(frozen=True)
+class ScanMatch:
+    """One candidate scan. probability: sigmoid(logit), the network's belief that the sequence and the
+    scan show the same place; slice: the best slice (the camera looked along the scan's yaw + 45 * slice
+    degrees); pose: 4 x 4 or None; rank counts from 0."""
+
+    row: int
+    id: int
+    stamp: float
+    pose: np.ndarray | None
+    logit: float
+    probability: float
+    slice: int
+    rank: int
+
+    @property
+    def relative_yaw_deg(self) -> float:
+        """The best slice's centre direction in the scan's frame, degrees in (-180, 180]."""
+        yaw = 45.0 * self.slice
+        return yaw - 360.0 if yaw > 180.0 else yaw
+
+
+def head_logits(head: DescriptorModel, query: torch.Tensor, slices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(288,) query, (n, 8, 288) slice descriptors -> (n,) max-slice logits and (n,) best slice."""
+    logits = head.logit(query, slices)  # n x 8, broadcast over the scans and slices
+    best = logits.max(dim=1)
+    return best.values, best.indices
+
+
+class _Grow:
+    """A numpy array grown by doubling; ``view()`` is the filled part, read-only."""
+
+    def __init__(self, dtype: type | np.dtype, width: tuple[int, ...] = ()) -> None:
+        self._data = np.empty((16, *width), dtype=dtype)
+        self._n = 0
+
+    def __len__(self) -> int:
+        return self._n
+
+    def extend(self, values: np.ndarray) -> None:
+        need = self._n + len(values)
+        if need > len(self._data):
+            grown = np.empty((max(need, 2 * len(self._data)), *self._data.shape[1:]), dtype=self._data.dtype)
+            grown[: self._n] = self._data[: self._n]
+            self._data = grown
+        self._data[self._n : need] = values
+        self._n = need
+
+    def view(self) -> np.ndarray:
+        out = self._data[: self._n]
+        out.flags.writeable = False
+        return out
+
+
+class ScanDatabase:
+    """Slice descriptors (N x 8 x 288) with id, stamp and pose per scan; rows count from 0 in insertion order.
+
+    Not thread-safe: share one database between threads behind a lock.
+    """
+
+    def __init__(self, *, weights_id: str = "") -> None:
+        self.weights_id = weights_id
+        self._index = faiss.IndexFlatL2(DESCRIPTOR_DIM)  # N * 8 slice rows: the only copy of the descriptors
+        self._ids = _Grow(np.int64)
+        self._stamps = _Grow(np.float64)
+        self._poses = _Grow(np.float64, (4, 4))
+        self._next_id = 0
+        self._stamps_sorted = True
+
+    def __len__(self) -> int:
+        return len(self._ids)
+
+    def __repr__(self) -> str:
+        return f"ScanDatabase({len(self)} scans x {SLICES} x {DESCRIPTOR_DIM}, weights {self.weights_id or '?'})"
+
+    @property
+    def ids(self) -> np.ndarray:
+        return self._ids.view()
+
+    @property
+    def stamps(self) -> np.ndarray:
+        return self._stamps.view()
+
+    @property
+    def poses(self) -> np.ndarray:
+        """(N, 4, 4) world_T_lidar; NaN where unknown."""
+        return self._poses.view()
+
+    @property
+    def descriptors(self) -> np.ndarray:
+        """(N, 8, 288) float32 copy."""
+        return self._view().copy()
+
+    def _view(self) -> np.ndarray:
+        """(N, 8, 288) view of FAISS storage; invalid after the next add(), internal use."""
+        n = len(self)
+        if n == 0:
+            return np.zeros((0, SLICES, DESCRIPTOR_DIM), np.float32)
+        flat = faiss.rev_swig_ptr(self._index.get_xb(), n * SLICES * DESCRIPTOR_DIM)
+        return flat.reshape(n, SLICES, DESCRIPTOR_DIM)
+
+    # ------------------------------------------------------------------ adding
+    def add(self, descriptors: np.ndarray, *, stamps: float | np.ndarray, poses: np.ndarray | None = None,
+            ids: int | np.ndarray | None = None) -> np.ndarray:
+        """Append (8, 288) or (n, 8, 288) slice descriptors; returns their (n,) ids.
+
+        stamps: seconds, one per scan. poses: (4, 4) or (n, 4, 4) world_T_lidar, None = unknown.
+        ids: unique, not yet used; default: one more than the largest so far.
+        """
+        x = np.asarray(descriptors)
+        if x.shape == (SLICES, DESCRIPTOR_DIM):
+            x = x[None]
+        if x.ndim != 3 or x.shape[1:] != (SLICES, DESCRIPTOR_DIM) or x.dtype.kind != "f":
+            raise MapError(f"descriptors of shape {x.shape} dtype {x.dtype}; expected float (n, {SLICES}, "
+                           f"{DESCRIPTOR_DIM}) or ({SLICES}, {DESCRIPTOR_DIM})")
+        x = np.ascontiguousarray(x, np.float32)
+        if not np.isfinite(x).all():
+            raise MapError("descriptors contain NaN or inf")
+        n = len(x)
+        t = np.asarray(stamps, np.float64).reshape(-1)
+        if t.shape != (n,) or not np.isfinite(t).all():
+            raise MapError(f"stamps {np.asarray(stamps).shape} do not fit {n} scans; expected ({n},) finite seconds")
+        p = np.full((n, 4, 4), np.nan) if poses is None else np.asarray(poses, np.float64).reshape(-1, 4, 4)
+        if p.shape != (n, 4, 4):
+            raise MapError(f"poses of shape {np.shape(poses)} do not fit {n} scans; expected (4, 4) or ({n}, 4, 4)")
+        if ids is None:
+            new_ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
+        else:
+            new_ids = np.asarray(ids).reshape(-1)
+            if new_ids.dtype.kind not in "iu" or new_ids.shape != (n,):
+                raise MapError(f"ids of shape {np.shape(ids)} dtype {new_ids.dtype}; expected {n} integers")
+            new_ids = new_ids.astype(np.int64)
+            fresh = n == 0 or new_ids.min() >= self._next_id  # above every id so far: no lookup needed
+            if (n and new_ids.min() < 0) or len(np.unique(new_ids)) != n or \
+                    (not fresh and np.isin(new_ids, self._ids.view()).any()):
+                raise MapError(f"ids {new_ids[:5].tolist()} are not {n} unique, unused, non-negative ids")
+        if n == 0:
+            return new_ids
+        last = self._stamps.view()[-1] if len(self) else -math.inf
+        self._stamps_sorted = self._stamps_sorted and t[0] >= last and bool(np.all(np.diff(t) >= 0))
+        self._index.add(x.reshape(n * SLICES, DESCRIPTOR_DIM))
+        self._ids.extend(new_ids)
+        self._stamps.extend(t)
+        self._poses.extend(p)
+        self._next_id = max(self._next_id, int(new_ids.max()) + 1)
+        return new_ids.copy()
+
+    # ------------------------------------------------------------------ search
+    def allowed(self, *, stamp: float | None, row: int | None, config: SearchConfig) -> np.ndarray | slice:
+        """The rows a query may match: a prefix ``slice(0, end)`` when that is what the rules leave
+        (stamps in order), else a sorted row array."""
+        n = len(self)
+        end = n
+        if row is not None:
+            end = min(end, max(0, int(row) - config.exclude_recent_rows))
+        if stamp is None or config.exclude_recent_s is None:
+            return slice(0, end)
+        limit = float(stamp) - config.exclude_recent_s
+        stamps = self._stamps.view()[:end]
+        if self._stamps_sorted:
+            return slice(0, int(np.searchsorted(stamps, limit, side="right")))
+        return np.flatnonzero(stamps <= limit)
+
+    def search(self, query: np.ndarray, head: DescriptorModel, *, config: SearchConfig = SearchConfig(),
+               stamps: float | Sequence[float] | np.ndarray | None = None,
+               rows: int | Sequence[int] | np.ndarray | None = None) -> list[list[ScanMatch]]:
+        """Best scans for each (Q, 288) query (or one (288,)), best first, at most ``config.k``.
+
+        stamps: the query stamps for the time rule (None: no time rule); rows: the query's own
+        row for the frame-gap rule (None: no gap rule). Ties keep the lower row first.
+        """
+        q = np.asarray(query, np.float32)
+        if q.shape == (DESCRIPTOR_DIM,):
+            q = q[None]
+        if q.ndim != 2 or q.shape[1] != DESCRIPTOR_DIM:
+            raise InputShapeError(f"query of shape {q.shape}; expected (Q, {DESCRIPTOR_DIM}) or ({DESCRIPTOR_DIM},)")
+        qs = _per_query(stamps, len(q), "stamps")
+        qr = _per_query(rows, len(q), "rows")
+        out = []
+        for i in range(len(q)):
+            allowed = self.allowed(stamp=None if qs is None else qs[i], row=None if qr is None else int(qr[i]),
+                                   config=config)
+            logits, best, cand = self._score(q[i], head, allowed, config)
+            out.append(self._matches(logits, best, cand, config.k))
+        return out
+
+    def _score(self, q: np.ndarray, head: DescriptorModel, allowed: np.ndarray | slice, config: SearchConfig
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Logits, best slices and rows of the scored scans."""
+        rows = np.arange(len(self))[allowed] if isinstance(allowed, slice) else allowed
+        target: np.ndarray | slice = allowed
+        if config.prefilter is not None and config.prefilter < len(rows):
+            rows = target = self._prefilter(q, allowed, rows, config.prefilter)
+        return (*self.exact_logits(q, head, target, chunk_scans=config.chunk_scans), rows)
+
+    def exact_logits(self, query: np.ndarray, head: DescriptorModel, rows: np.ndarray | slice | None = None, *,
+                     chunk_scans: int = 4096) -> tuple[np.ndarray, np.ndarray]:
+        """Max-slice logits (n,) and best slices (n,) of one (288,) query against ``rows`` (default all)."""
+        view = self._view()
+        rows = slice(0, len(self)) if rows is None else rows
+        contiguous = isinstance(rows, slice)
+        n = len(range(*rows.indices(len(self)))) if isinstance(rows, slice) else len(rows)
+        start = rows.indices(len(self))[0] if isinstance(rows, slice) else 0
+        logits, best = np.empty(n, np.float32), np.empty(n, np.int64)
+        param = next(head.parameters())
+        qt = torch.from_numpy(np.asarray(query, np.float32)).to(param.device, param.dtype)
+        with torch.inference_mode():
+            for lo in range(0, n, chunk_scans):
+                hi = min(lo + chunk_scans, n)
+                block = view[start + lo : start + hi] if contiguous else view[rows[lo:hi]]  # type: ignore[index]
+                values, slices = head_logits(head, qt, torch.from_numpy(np.ascontiguousarray(block)).to(
+                    param.device, param.dtype))
+                logits[lo:hi] = values.float().cpu().numpy()
+                best[lo:hi] = slices.cpu().numpy()
+        return logits, best
+
+    def _prefilter(self, q: np.ndarray, allowed: np.ndarray | slice, rows: np.ndarray, m: int) -> np.ndarray:
+        """The m allowed scans with the smallest min-slice L2 distance to q (sorted by row)."""
+        if isinstance(allowed, slice):
+            end = allowed.indices(len(self))[1]
+            sel = None if end == len(self) else faiss.IDSelectorRange(0, end * SLICES)
+            bitmap = None
+        else:
+            mask = np.zeros(len(self) * SLICES, bool)
+            mask[(rows[:, None] * SLICES + np.arange(SLICES)).reshape(-1)] = True
+            bitmap = np.packbits(mask, bitorder="little")  # kept alive while the selector is used
+            sel = faiss.IDSelectorBitmap(len(mask), faiss.swig_ptr(bitmap))
+        kk = min(m * SLICES, len(rows) * SLICES)  # m * 8 slices always cover at least m scans
+        params = None if sel is None else faiss.SearchParameters(sel=sel)
+        _, hits = self._index.search(q[None], kk, params=params)
+        del bitmap
+        scans = hits[0][hits[0] >= 0] // SLICES
+        _, first = np.unique(scans, return_index=True)
+        return np.sort(scans[np.sort(first)][:m])
+
+    def _matches(self, logits: np.ndarray, best: np.ndarray, rows: np.ndarray, k: int) -> list[ScanMatch]:
+        if len(rows) == 0:
+            return []
+        kk = min(k, len(rows))
+        top = np.argpartition(-logits, kk - 1)[:kk] if kk < len(rows) else np.arange(len(rows))
+        top = top[np.lexsort((rows[top], -logits[top]))]
+        ids, stamps, poses = self._ids.view(), self._stamps.view(), self._poses.view()
+        out = []
+        for rank, j in enumerate(top.tolist()):
+            r = int(rows[j])
+            pose = None if np.isnan(poses[r]).all() else poses[r].copy()
+            logit = float(logits[j])
+            out.append(ScanMatch(row=r, id=int(ids[r]), stamp=float(stamps[r]), pose=pose, logit=logit,
+                                 probability=_sigmoid(logit), slice=int(best[j]), rank=rank))
+        return out
+
+    # ------------------------------------------------------------------ files
+    def save(self, path: str | os.PathLike[str]) -> None:
+        """Write the database to one .npz (no pickle), atomically: on failure the old file stays."""
+        header = {"format": _FORMAT, "schema_version": DATABASE_SCHEMA_VERSION, "slices": SLICES,
+                  "dim": DESCRIPTOR_DIM, "count": len(self), "weights_id": self.weights_id}
+        arrays = {"header": np.array(json.dumps(header)), "descriptors": self._view(), "ids": self._ids.view(),
+                  "stamps": self._stamps.view(), "poses": self._poses.view()}
+        try:
+            with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+                np.savez(fh, **arrays)
+        except OSError as err:
+            raise MapError(f"cannot save the scan database to {os.fspath(path)}: {err}") from err
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str], *, expect_weights_id: str | None = None) -> ScanDatabase:
+        """Read a file written by :meth:`save`. With ``expect_weights_id``, the file's descriptors must
+        come from those weights (else MapSchemaError)."""
+        where = os.fspath(path)
+        data = _read_npz(where)
+        header = _parse_header(data["header"], where)
+        if expect_weights_id is not None and header["weights_id"] != expect_weights_id:
+            raise MapSchemaError(f"scan database {where} was made with descriptor weights "
+                                 f"{header['weights_id']!r}; these weights are {expect_weights_id!r}")
+        n = header["count"]
+        shapes = {"descriptors": ((n, SLICES, DESCRIPTOR_DIM), "f"), "ids": ((n,), "iu"),
+                  "stamps": ((n,), "f"), "poses": ((n, 4, 4), "f")}
+        for key, (shape, kinds) in shapes.items():
+            if data[key].shape != shape or data[key].dtype.kind not in kinds:
+                raise MapError(f"scan database {where}: {key} has shape {data[key].shape} dtype {data[key].dtype}; "
+                               f"expected {shape}")
+        out = cls(weights_id=header["weights_id"])
+        try:
+            out.add(data["descriptors"], stamps=data["stamps"], poses=data["poses"], ids=data["ids"])
+        except MapError as err:
+            raise MapError(f"scan database {where} is damaged: {err}") from err
+        return out
+
+
+def _sigmoid(x: float) -> float:
+    return 1.0 / (1.0 + math.exp(-x)) if x >= 0 else math.exp(x) / (1.0 + math.exp(x))
+
+
+def _per_query(values: Any, q: int, what: str) -> np.ndarray | None:
+    if values is None:
+        return None
+    arr = np.asarray(values, np.float64)
+    if arr.ndim == 0:
+        arr = np.full(q, float(arr))
+    if arr.shape != (q,) or np.isnan(arr).any():
+        raise InputShapeError(f"{what} of shape {arr.shape}; expected one number or ({q},), not NaN")
+    return arr
+
+
+def _read_npz(where: str) -> dict[str, np.ndarray]:
+    try:
+        with np.load(where, allow_pickle=False) as npz:
+            missing = [k for k in _NPZ_KEYS if k not in npz.files]
+            if missing:
+                raise MapError(f"scan database {where} lacks {', '.join(missing)}; expected {', '.join(_NPZ_KEYS)}")
+            return {k: npz[k] for k in _NPZ_KEYS}
+    except FileNotFoundError as err:
+        raise MapError(f"scan database {where} does not exist") from err
+    except MapError:
+        raise
+    except Exception as err:  # noqa: BLE001 - zipfile/numpy raise many kinds on damaged files
+        raise MapError(f"scan database {where} cannot be read (.npz): {type(err).__name__}: {err}") from err
+
+
+def _parse_header(raw: np.ndarray, where: str) -> dict[str, Any]:
+    try:
+        header = json.loads(str(raw.item()))
+    except (ValueError, TypeError) as err:
+        raise MapError(f"scan database {where} has an unreadable header: {err}") from err
+    if not isinstance(header, dict) or header.get("format") != _FORMAT:
+        raise MapError(f"{where} is not a {_FORMAT} file")
+    if header.get("schema_version") != DATABASE_SCHEMA_VERSION:
+        raise MapSchemaError(f"scan database {where} has schema version {header.get('schema_version')!r}; this "
+                             f"code reads version {DATABASE_SCHEMA_VERSION}")
+    if header.get("slices") != SLICES or header.get("dim") != DESCRIPTOR_DIM:
+        raise MapSchemaError(f"scan database {where} holds {header.get('slices')} x {header.get('dim')} "
+                             f"descriptors per scan; expected {SLICES} x {DESCRIPTOR_DIM}")
+    for key, kind in (("count", int), ("weights_id", str)):
+        if not isinstance(header.get(key), kind):
+            raise MapError(f"scan database {where} header field {key!r} is {header.get(key)!r}; "
+                           f"expected {kind.__name__}")
+    return header
+
+
+@dataclass
+class Vseq2pcMap:
+    """The networks, a scan database and search settings: what a VSeq2PC node needs.
+
+    >>> vmap = Vseq2pcMap(Vseq2pcNet.from_files(sequence=..., descriptor=...))
+    >>> vmap.add_scan(points, labels, stamp=t, pose=world_T_lidar)
+    >>> matches = vmap.query(batch)            # one list of ScanMatch per query of the batch
+    """
+
+    net: Vseq2pcNet
+    database: ScanDatabase | None = None
+    config: SearchConfig = field(default_factory=SearchConfig)
+
+    def __post_init__(self) -> None:
+        if self.database is None:
+            self.database = ScanDatabase(weights_id=self.net.weights_id)
+        elif self.database.weights_id and self.database.weights_id != self.net.weights_id:
+            raise MapSchemaError(f"the scan database was made with descriptor weights {self.database.weights_id!r}; "
+                                 f"the network's are {self.net.weights_id!r}")
+
+    @property
+    def db(self) -> ScanDatabase:
+        assert self.database is not None
+        return self.database
+
+    def __len__(self) -> int:
+        return len(self.db)
+
+    def add_scan(self, points: np.ndarray, labels: np.ndarray, *, stamp: float, pose: np.ndarray | None = None,
+                 id: int | None = None) -> int:
+        """Describe one labelled cloud (N x >=3 LiDAR-frame points, N SemanticKITTI labels) and add it."""
+        return self.add_feature(structure_feature(points, labels), stamp=stamp, pose=pose, id=id)
+
+    def add_feature(self, feature: np.ndarray, *, stamp: float, pose: np.ndarray | None = None,
+                    id: int | None = None) -> int:
+        """Add a scan from its 12 x 360 structure feature; returns its id."""
+        desc = self.net.slice_descriptors(np.asarray(feature, np.float32)[None])
+        return int(self.db.add(desc, stamps=stamp, poses=pose, ids=id)[0])
+
+    def query(self, batch: SequenceBatch | np.ndarray, *, stamps: np.ndarray | None = None,
+              rows: np.ndarray | None = None, config: SearchConfig | None = None) -> list[list[ScanMatch]]:
+        """Best scans for each query of a SequenceBatch (its query stamps feed the time rule) or of a
+        B x 4 x 12 x 90 array (give ``stamps`` for the time rule)."""
+        if isinstance(batch, SequenceBatch):
+            frames, stamps = batch.frames, batch.query_stamps if stamps is None else stamps
+        else:
+            frames = batch
+        d_seq = self.net.query_descriptors(frames)
+        return self.db.search(d_seq, self.net.descriptor, config=config or self.config, stamps=stamps, rows=rows)
+
+    def save(self, path: str | os.PathLike[str]) -> None:
+        self.db.save(path)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str], net: Vseq2pcNet, *, config: SearchConfig | None = None) -> Vseq2pcMap:
+        """A saved database for ``net`` (refused when made with other descriptor weights)."""
+        return cls(net, ScanDatabase.load(path, expect_weights_id=net.weights_id), config or SearchConfig())

@@ -1,0 +1,319 @@
+"""The vseq2pc node in this process (rclpy executor in a thread), driven over real DDS on loopback.
+
+Drive: a short KITTI-like synthetic drive (msg_tools.synth, 160 x 48 images, 2.5 m between
+frames). Map clouds: for a match we can assert, each map scan is the back-projection of
+that frame's own depth + label images into the LiDAR frame, so the structure the camera
+sees later is identical to the true scan's (seeded random weights cannot tell real LiDAR
+scans apart; see the report). The weights are "oracle" weights written to files: the
+descriptor model's residual (sequence) stream is zeroed, so a sequence descriptor equals
+the query frame's slice descriptor, and its head scores -W|d_seq - d_scan| with W >= 0,
+so the identical scan ranks first. The camera sequence revisits the same poses 100 s later.
+"""
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rclpy
+import torch
+from nav_msgs.msg import Odometry
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_srvs.srv import Trigger
+
+from lcpr_core.preprocess.structure import camera_points
+from lcpr_core.vseq2pc import save_descriptor_weights, save_sequence_weights
+from lcpr_core.vseq2pc.init import seeded_models
+from lcpr_core.vseq2pc.sequence import sequence_table
+from lcpr_ros.errors import ConfigError, MapLoadError
+from lcpr_ros.harness import OutputListener
+from msg_tools.camera_info import model_to_camera_info
+from msg_tools.image import array_to_image
+from msg_tools.pointcloud import array_to_pointcloud2
+from msg_tools.synth import SynthConfig, SyntheticDrive
+from msg_tools.transforms import pose_to_odometry
+from vseq2pc_ros import inputs
+from vseq2pc_ros.node import Vseq2pcNode
+
+REPO = Path(__file__).resolve().parents[1]
+DOMAIN = random.randint(101, 200)
+PREFIX = f"/v{random.randint(0, 10**6)}"
+TOPICS = {"lidar_topic": f"{PREFIX}/points", "depth_topic": f"{PREFIX}/depth", "labels_topic": f"{PREFIX}/labels",
+          "camera_info_topic": f"{PREFIX}/camera_info", "image_topic": "", "odom_topic": f"{PREFIX}/odom"}
+FRAMES = 12  # 2.5 m apart: the first 5 or 6 frames become queries (15 m on)
+T0 = 1_700_000_000.0
+DT = 0.25
+REVISIT = 100.0  # s after the map pass
+WAIT = 60.0
+QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+PACE = 0.1  # s between published frames
+LABEL_CLOUD = np.dtype([("x", np.float32), ("y", np.float32), ("z", np.float32), ("label", np.uint32)])
+
+
+def wait_until(condition: Callable[[], bool], timeout: float = WAIT) -> bool:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.02)
+    return True
+
+
+@dataclass
+class Drive:
+    poses: list[np.ndarray]
+    depth: list[np.ndarray]  # float32 metres
+    labels: list[np.ndarray]  # uint16
+    clouds: list[np.ndarray]  # structured x, y, z, label: the camera's structure in the LiDAR frame
+    info: object  # CameraModel
+    weights: tuple[Path, Path]  # sequence, descriptor
+
+
+def oracle_weights(folder: Path) -> tuple[Path, Path]:
+    seq, desc = seeded_models(0)
+    with torch.no_grad():
+        for name, module in desc.named_modules():
+            if "_seq" in name and isinstance(module, torch.nn.Conv1d):
+                module.weight.zero_()
+                module.bias.zero_()
+        desc.linear[0].weight.abs_()
+        desc.linear[0].bias.zero_()
+        desc.linear[2].weight.fill_(-100.0)
+        desc.linear[2].bias.fill_(5.0)
+    paths = folder / "sequence.pth", folder / "descriptor.pth"
+    save_sequence_weights(seq, paths[0])
+    save_descriptor_weights(desc, paths[1])
+    return paths
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory: pytest.TempPathFactory) -> Drive:
+    synth = SyntheticDrive(SynthConfig(rig="kitti", frames=FRAMES, route="grid", image_size=(160, 48), seed=0,
+                                       camera_drop=0.0, keyframe_spacing=2.5))
+    cam = synth.rig.cameras[0]
+    out = Drive([], [], [], [], cam, oracle_weights(tmp_path_factory.mktemp("weights")))
+    for i in range(FRAMES):
+        image = synth.frame(i).cameras[0]
+        assert image is not None and image.depth is not None and image.labels is not None
+        out.poses.append(synth.pose(i))
+        out.depth.append(image.depth.astype(np.float32))
+        out.labels.append(image.labels.astype(np.uint16))
+        pts, lab = camera_points(image.depth, image.labels, cam.K, cam.base_T_cam)  # base = velodyne
+        cloud = np.zeros(len(pts), LABEL_CLOUD)
+        cloud["x"], cloud["y"], cloud["z"], cloud["label"] = pts[:, 0], pts[:, 1], pts[:, 2], lab
+        out.clouds.append(cloud)
+    return out
+
+
+def params(drive: Drive, **extra: object) -> list[Parameter]:
+    values: dict[str, object] = {
+        **TOPICS, "input_qos": "reliable", "model.sequence": str(drive.weights[0]),
+        "model.descriptor": str(drive.weights[1]), "model.threads": 1, "sync.max_wait": 5.0,
+        "worker.max_waiting": 64, "diagnostics.period": 0.2, "match.top_k": 3, **extra,
+    }
+    return [Parameter(name, value=value) for name, value in values.items()]
+
+
+@dataclass
+class Ros:
+    context: Context
+    node: Vseq2pcNode
+    driver: Node
+    listener: OutputListener
+    pubs: dict[str, object]
+    map_path: Path
+    info: object
+
+    def odom(self, pose: np.ndarray, stamp: float) -> None:
+        self.pubs["odom"].publish(pose_to_odometry(pose, stamp=stamp, msg_type=Odometry))
+
+    def cloud(self, msg: PointCloud2) -> None:
+        self.pubs["cloud"].publish(msg)
+
+    def camera(self, depth: Image, labels: Image, stamp: float) -> None:
+        self.pubs["info"].publish(model_to_camera_info(self.info, stamp=stamp, msg_type=CameraInfo))
+        self.pubs["depth"].publish(depth)
+        self.pubs["labels"].publish(labels)
+
+
+def cloud_msg(cloud: np.ndarray, stamp: float) -> PointCloud2:
+    return array_to_pointcloud2(cloud, frame_id="velodyne", stamp=stamp, msg_type=PointCloud2)
+
+
+def depth_msg(depth: np.ndarray, stamp: float, encoding: str = "32FC1") -> Image:
+    return array_to_image(depth, encoding=encoding, frame_id="camera_left", stamp=stamp, msg_type=Image)
+
+
+def labels_msg(labels: np.ndarray, stamp: float) -> Image:
+    return array_to_image(labels, encoding="mono16", frame_id="camera_left", stamp=stamp, msg_type=Image)
+
+
+@pytest.fixture(scope="module")
+def ros(drive: Drive, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Ros]:
+    context = Context()
+    rclpy.init(context=context, domain_id=DOMAIN)
+    map_path = tmp_path_factory.mktemp("map") / "vseq2pc_map.npz"
+    node = Vseq2pcNode(context=context, parameter_overrides=params(drive, **{"map.path": str(map_path)}))
+    driver = rclpy.create_node("vdriver", context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    executor.add_node(driver)
+    thread = threading.Thread(target=executor.spin, daemon=True)
+    thread.start()
+    pubs = {"odom": driver.create_publisher(Odometry, TOPICS["odom_topic"], QOS),
+            "cloud": driver.create_publisher(PointCloud2, TOPICS["lidar_topic"], QOS),
+            "depth": driver.create_publisher(Image, TOPICS["depth_topic"], QOS),
+            "labels": driver.create_publisher(Image, TOPICS["labels_topic"], QOS),
+            "info": driver.create_publisher(CameraInfo, TOPICS["camera_info_topic"], QOS)}
+    listener = OutputListener(driver, "/vseq2pc")
+    assert wait_until(lambda: all(p.get_subscription_count() >= 1 for p in pubs.values()), 20)
+    listener.wait_for_publishers()
+    try:
+        yield Ros(context, node, driver, listener, pubs, map_path, drive.info)
+    finally:
+        node.close()
+        executor.shutdown(timeout_sec=5)
+        thread.join(5)
+        node.destroy_node()
+        driver.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
+def test_a_camera_sequence_revisiting_the_map_is_matched_to_the_scan_at_its_pose(ros: Ros, drive: Drive) -> None:
+    for i in range(FRAMES):
+        ros.odom(drive.poses[i], T0 + i * DT)
+        ros.cloud(cloud_msg(drive.clouds[i], T0 + i * DT))
+        time.sleep(PACE)
+    assert wait_until(lambda: len(ros.node.map) == FRAMES), ros.node.health()
+    for i in range(FRAMES):
+        stamp = T0 + REVISIT + i * DT
+        ros.odom(drive.poses[i], stamp)
+        ros.camera(depth_msg(drive.depth[i], stamp), labels_msg(drive.labels[i], stamp), stamp)
+        time.sleep(PACE)  # the node's input queues keep 10 per topic: no bursts beyond them
+    table = sequence_table(np.array([p[:2, 3] for p in drive.poses]))
+    queries = int((table[:, 0] >= 0).sum())  # frames with a frame 15 m further on (5 or 6 here)
+    assert queries >= 4
+    assert ros.listener.wait(lambda o: len(o.loops) >= queries and len(o.candidates) >= queries, WAIT), \
+        (queries, ros.listener.out.loops, ros.node.health())
+    loops = ros.listener.out.loops
+    for q, (query_stamp, match_stamp) in enumerate(loops[:queries]):
+        assert query_stamp == pytest.approx(T0 + REVISIT + q * DT)
+        assert match_stamp == pytest.approx(T0 + q * DT)  # the scan taken at the query's pose
+    for q, rows in enumerate(ros.listener.out.candidates[:queries]):
+        assert len(rows) == 3 and [r["rank"] for r in rows] == [0, 1, 2]
+        best = rows[0]
+        assert best["match_id"] == q and best["query_id"] == q
+        assert {"query_stamp", "match_stamp", "distance", "probability"} <= set(best)
+        assert best["distance"] == pytest.approx(1.0 - best["probability"])
+        assert all(a["distance"] <= b["distance"] for a, b in zip(rows, rows[1:]))
+        assert np.hypot(*(drive.poses[int(best["match_id"])][:2, 3] - drive.poses[q][:2, 3])) < 1e-6
+    assert wait_until(lambda: ros.listener.latest_values(": detector").get("loops") == str(queries), 10)
+
+
+def test_bad_input_is_dropped_counted_warned_once_and_the_map_is_kept(ros: Ros, drive: Drive) -> None:
+    size = len(ros.node.map)
+    logged = ros.node.warnings.logged
+    stamp = T0 + 500.0
+    no_label = np.zeros(10, [("x", np.float32), ("y", np.float32), ("z", np.float32)])
+    no_xyz = np.zeros(10, [("a", np.float32), ("label", np.uint32)])
+    truncated = cloud_msg(drive.clouds[0], stamp)
+    truncated.data = bytes(truncated.data)[: len(truncated.data) // 2]
+    for k in range(2):  # twice: the second time is only counted
+        ros.cloud(cloud_msg(no_label, stamp + k))
+        ros.cloud(cloud_msg(no_xyz, stamp + k))
+        ros.cloud(truncated)
+        t = stamp + 10 + k
+        ros.odom(drive.poses[0], t)
+        ros.pubs["depth"].publish(depth_msg(drive.depth[0].astype(np.uint8), t, "mono8"))  # not a depth encoding
+        ros.camera(depth_msg(drive.depth[0], t + 0.5), labels_msg(drive.labels[0][:24, :80].copy(), t + 0.5), t + 0.5)
+    ros.odom(drive.poses[1], stamp + 20)
+    ros.cloud(cloud_msg(drive.clouds[1], stamp + 20))  # a good cloud
+    ros.cloud(cloud_msg(drive.clouds[2], stamp + 19))  # out of order
+    causes = [inputs.CLOUD_NO_LABEL, inputs.CLOUD_NO_XYZ, inputs.CLOUD_TRUNCATED, inputs.DEPTH_ENCODING,
+              inputs.SIZE_MISMATCH, "cloud: out of order"]
+    expected = {cause: 1 if cause == "cloud: out of order" else 2 for cause in causes}
+    assert wait_until(lambda: all(ros.node.drops[c] >= n for c, n in expected.items())), ros.node.drops.snapshot()
+    assert wait_until(lambda: len(ros.node.map) == size + 1)  # the good cloud still goes in
+    assert ros.node.warnings.logged - logged == len(causes)  # once per cause
+    values = ros.listener
+    assert wait_until(lambda: values.latest_values(": inputs").get(f"dropped {inputs.CLOUD_NO_LABEL}") == "2", 10)
+    assert values.latest_values(": detector")["map size"] == str(size + 1)
+
+
+def test_runtime_parameters_are_validated(ros: Ros) -> None:
+    ok = ros.node.set_parameters([Parameter("match.top_k", value=5)])[0]
+    assert ok.successful and ros.node.settings.match.top_k == 5
+    bad = ros.node.set_parameters([Parameter("extrinsics.matrix", value=[1.0] * 16)])[0]
+    assert not bad.successful and "rigid" in bad.reason
+    bad = ros.node.set_parameters([Parameter("match.min_probability", value=2.0)])[0]
+    assert not bad.successful
+    assert ros.node.settings.match.top_k == 5 and ros.node.settings.extrinsics.format == "xyz_rpy"
+
+
+def test_the_map_is_saved_loaded_by_a_second_node_and_bad_files_refuse_the_start(ros: Ros, drive: Drive,
+                                                                                 tmp_path: Path) -> None:
+    client = ros.driver.create_client(Trigger, "/vseq2pc/save_map")
+    assert client.wait_for_service(timeout_sec=10)
+    future = client.call_async(Trigger.Request())
+    assert wait_until(future.done, 20)
+    assert future.result().success, future.result().message
+    size = len(ros.node.map)
+    second = Vseq2pcNode(context=ros.context, parameter_overrides=params(drive, **{
+        "map.path": str(ros.map_path), "lidar_topic": f"{PREFIX}/other"}))
+    try:
+        assert len(second.map) == size
+        assert np.allclose(second.map.db.stamps, ros.node.map.db.stamps)
+    finally:
+        second.close()
+        second.destroy_node()
+    original = ros.map_path.read_bytes()
+    with pytest.raises(MapLoadError, match="descriptor weights"):  # seeded random weights: another model
+        Vseq2pcNode(context=ros.context, parameter_overrides=[
+            Parameter(n, value=v) for n, v in {**TOPICS, "map.path": str(ros.map_path)}.items()])
+    assert ros.map_path.read_bytes() == original
+    corrupt = tmp_path / "corrupt.npz"
+    corrupt.write_bytes(b"not a map")
+    with pytest.raises(MapLoadError):
+        Vseq2pcNode(context=ros.context, parameter_overrides=params(drive, **{"map.path": str(corrupt)}))
+    assert corrupt.read_bytes() == b"not a map"
+    with pytest.raises(ConfigError, match="model.sequence"):
+        Vseq2pcNode(context=ros.context, parameter_overrides=[Parameter("model.sequence", value="x.pth")])
+
+
+def test_main_stops_cleanly_on_sigterm_and_refuses_a_corrupt_map(tmp_path: Path) -> None:
+    env = {**os.environ, "ROS_DOMAIN_ID": str(DOMAIN + 1), "PYTHONPATH": str(REPO)}
+    corrupt = tmp_path / "bad.npz"
+    corrupt.write_bytes(b"junk")
+    cmd = [sys.executable, "-m", "vseq2pc_ros.node", "--ros-args", "-p", f"lidar_topic:={PREFIX}/m",
+           "-p", "diagnostics.period:=0.5"]
+    bad = subprocess.run([*cmd, "-p", f"map.path:={corrupt}"], env=env, capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 1 and "cannot start" in bad.stderr and corrupt.read_bytes() == b"junk"
+    saved = tmp_path / "saved.npz"
+    proc = subprocess.Popen([*cmd, "-p", f"map.path:={saved}"], env=env, stderr=subprocess.PIPE, text=True)
+    try:
+        lines: list[str] = []
+        assert proc.stderr is not None
+        for line in proc.stderr:
+            lines.append(line)
+            if "ready:" in line:
+                break
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=30) == 0, "".join(lines)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert saved.exists()  # an empty map, saved at shutdown

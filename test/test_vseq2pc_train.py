@@ -1,0 +1,91 @@
+"""A tiny VSeq2PC training run: it runs, writes loadable weights in the released layouts, and resumes."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from lcpr_core.vseq2pc import Vseq2pcNet
+from lcpr_core.vseq2pc.dataset import FeatureCache
+from lcpr_core.vseq2pc.init import seeded_models
+from lcpr_core.vseq2pc.pairs import TrainPairConfig, training_pairs
+from lcpr_core.vseq2pc.train import TrainConfig, lr_at, main, place_loss, train
+
+
+def line_cache(n: int = 48, step: float = 1.5, seed: int = 0) -> FeatureCache:
+    """A drive along a line; each frame's LiDAR feature is random, its camera sees the forward 90 degrees."""
+    rng = np.random.default_rng(seed)
+    lidar = (rng.random((n, 12, 360)) * (rng.random((n, 12, 360)) > 0.7)).astype(np.float32)
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, 0, 3] = np.arange(n) * step
+    return FeatureCache(camera=lidar[:, :, 135:225].copy(), camera_valid=np.ones(n, bool), lidar=lidar,
+                        poses=poses, stamps=np.arange(n) * 0.15, source="hand-made")
+
+
+def tiny(tmp_path: Path, **changes: object) -> TrainConfig:
+    line_cache().save(tmp_path / "cache.npz")
+    base = dict(cache=str(tmp_path / "cache.npz"), out=str(tmp_path / "run"), pretrain_epochs=1, epochs=1,
+                batch=4, queries_per_epoch=8, val_fraction=0.25, val_negatives=2, progress=False,
+                seq_base_lr=0.05)
+    return TrainConfig(**{**base, **changes})  # type: ignore[arg-type]
+
+
+def test_one_epoch_of_each_stage_writes_weights_that_load_and_a_history(tmp_path: Path) -> None:
+    run = train(tiny(tmp_path))
+    out = tmp_path / "run"
+    assert [(h["stage"], h["epoch"]) for h in run.history] == [(1, 1), (2, 1)]
+    assert all(np.isfinite(h["train_loss"]) for h in run.history)
+    assert run.history[1]["val_max_f1"] is not None
+    net = Vseq2pcNet.from_files(sequence=out / "sequence_model.pth", descriptor=out / "descriptor_model.pth")
+    for name, value in net.sequence.state_dict().items():
+        assert torch.equal(value, run.seq.state_dict()[name])
+    assert list(torch.load(out / "descriptor_model.pth", weights_only=True)) == ["state_dict"]
+    assert (out / "best_descriptor_model.pth").is_file() and (out / "curves.png").stat().st_size > 1000
+    assert len(json.loads((out / "history.json").read_text())["history"]) == 2
+    torch.load(out / "train_state.pt", weights_only=True)  # no pickled objects
+
+
+def test_resume_continues_after_the_last_finished_epoch(tmp_path: Path) -> None:
+    train(tiny(tmp_path))
+    run = train(tiny(tmp_path, epochs=2, resume=True))
+    assert [(h["stage"], h["epoch"]) for h in run.history] == [(1, 1), (2, 1), (2, 2)]
+
+
+def test_pretraining_lowers_the_reconstruction_error_on_a_fixed_batch(tmp_path: Path) -> None:
+    # every training query in one batch: each epoch is one step on the same batch
+    run = train(tiny(tmp_path, pretrain_epochs=6, epochs=0, queries_per_epoch=None, batch=64,
+                     seq_warmup_epochs=0.0, seq_base_lr=0.0004))
+    losses = [h["train_loss"] for h in run.history]
+    assert losses[-1] < losses[0]
+
+
+def test_the_command_line_trains_and_reports(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    line_cache().save(tmp_path / "cache.npz")
+    code = main(["--cache", str(tmp_path / "cache.npz"), "--out", str(tmp_path / "cli"), "--pretrain-epochs", "0",
+                 "--epochs", "1", "--batch", "4", "--queries-per-epoch", "4", "--no-progress"])
+    assert code == 0 and "stage 2 epoch 1" in capsys.readouterr().out
+    assert main(["--cache", str(tmp_path / "missing.npz"), "--out", str(tmp_path / "x")]) == 2
+
+
+def test_pairs_losses_and_schedule_follow_the_release() -> None:
+    pos = np.c_[np.arange(100) * 1.5, np.zeros(100), np.zeros(100)]
+    pairs = training_pairs(pos, np.arange(0, 60, 7), np.arange(100), config=TrainPairConfig(negatives=3),
+                           rng=np.random.default_rng(0))
+    assert len(pairs) == 9 * 4
+    grouped = pairs.distance.reshape(9, 4)
+    assert (grouped[:, 0] < 3).all() and (grouped[:, 1:] > 20).all()
+    perfect = place_loss(torch.tensor([20.0, -20.0]), torch.tensor([0.0, 1.0]), torch.tensor([1.0, 0.0]), margin=0.2)
+    assert float(perfect) < 1e-6
+    hinge = place_loss(torch.tensor([-20.0]), torch.tensor([0.01]), torch.tensor([0.0]), margin=0.2)
+    assert float(hinge) == pytest.approx((0.2 - 0.1) ** 2, abs=1e-6)
+    assert lr_at(0, base=1.0, warmup_steps=4, total_steps=12) == 0.25
+    assert lr_at(4, base=1.0, warmup_steps=4, total_steps=12) == 1.0
+    assert lr_at(12, base=1.0, warmup_steps=4, total_steps=12) == pytest.approx(0.0)
+    seq, _ = seeded_models(0)
+    with torch.no_grad():
+        f = seq.eval()(torch.from_numpy(line_cache().camera[:4][None]))
+    inside = float(((f > 0) & (f < 1)).float().mean())
+    assert inside > 0.3  # the training init starts largely inside the clamp (PyTorch's default: ~0.1 %)

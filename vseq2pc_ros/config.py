@@ -1,0 +1,207 @@
+"""The node's settings as typed config; every leaf becomes a dotted ROS parameter.
+
+``__post_init__`` refuses a bad value with a ValueError naming it (turned into a
+ConfigError by :mod:`vseq2pc_ros.params`). Defaults fit the KITTI-like synthetic rig
+(msg_tools.synth.rigs.kitti_rig: base_link = velodyne, camera_left 0.27 m ahead,
+0.06 m left, 0.08 m down, level, looking along +x).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from lcpr_core.vseq2pc.retrieval import SearchConfig
+from lcpr_core.vseq2pc.sequence import OFFSETS, SequenceConfig
+from msg_tools.frames import KITTI_TOPICS
+
+INPUT_QOS = ("sensor_data", "reliable")
+EXTRINSICS_FORMATS = ("xyz_rpy", "matrix")
+HALF_PI = math.pi / 2
+
+#: lidar_T_cam of the KITTI-like synthetic rig (optical frame: z forward, x right, y down).
+KITTI_LIDAR_T_CAM: tuple[float, ...] = (
+    0.0, 0.0, 1.0, 0.27,
+    -1.0, 0.0, 0.0, 0.06,
+    0.0, -1.0, 0.0, -0.08,
+    0.0, 0.0, 0.0, 1.0,
+)
+
+
+def _check(ok: bool, message: str) -> None:
+    if not ok:
+        raise ValueError(message)
+
+
+def _non_negative(obj: object, *names: str) -> None:
+    for name in names:
+        value = getattr(obj, name)
+        _check(isinstance(value, (int, float)) and math.isfinite(value) and value >= 0,
+               f"{name}={value!r}; it must be a finite number >= 0")
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    sequence: str = ""  # sequence-model weights (released pickled module or state dict)
+    descriptor: str = ""  # descriptor-model weights ({'state_dict'} or state dict)
+    seed: int = 0  # seeded random weights when both files are "" (testing only)
+    device: str = "cpu"
+    threads: int = 0  # torch intra-op threads; 0 = torch's default
+
+    def __post_init__(self) -> None:
+        _check(bool(self.sequence) == bool(self.descriptor),
+               "model.sequence and model.descriptor: give both weight files, or neither (seeded random weights)")
+        _check(self.seed >= 0, f"seed={self.seed}; it must be >= 0")
+        _check(self.threads >= 0, f"threads={self.threads}; it must be >= 0")
+        _check(bool(self.device), "device is empty; e.g. cpu or cuda:0")
+
+
+@dataclass(frozen=True)
+class MatchConfig:
+    top_k: int = 10  # candidates per query
+    exclude_recent_s: float = 30.0  # scans stamped later than query stamp - this are not matched
+    min_probability: float = 0.0  # candidates under this probability are not published
+    prefilter: int = 0  # 0 = exact head on every scan; M = FAISS top-M scans first (approximate)
+
+    def __post_init__(self) -> None:
+        _check(self.top_k >= 1, f"top_k={self.top_k}; it must be >= 1")
+        _non_negative(self, "exclude_recent_s")
+        _check(0.0 <= self.min_probability <= 1.0, f"min_probability={self.min_probability}; it must lie in [0, 1]")
+        _check(self.prefilter >= 0, f"prefilter={self.prefilter}; it must be >= 0 (0 = exact)")
+
+    def search(self) -> SearchConfig:
+        return SearchConfig(k=self.top_k, exclude_recent_s=self.exclude_recent_s,
+                            prefilter=self.prefilter or None)
+
+
+@dataclass(frozen=True)
+class SequenceParams:
+    offsets: tuple[float, ...] = OFFSETS  # m after the query frame
+    min_query_spacing: float = 0.0  # m between query frames; 0 = every camera frame
+    max_pending: int = 4096  # queries waiting for their last member
+
+    def __post_init__(self) -> None:
+        try:
+            self.builder()
+        except ValueError as err:
+            raise ValueError(str(err).replace("min_query_spacing_m", "min_query_spacing")) from None
+
+    def builder(self) -> SequenceConfig:
+        return SequenceConfig(offsets=tuple(self.offsets), min_query_spacing_m=self.min_query_spacing,
+                              max_pending=self.max_pending)
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    min_distance: float = 0.0  # m travelled since the last one used; 0 = off
+    min_interval: float = 0.0  # s (header stamps) since the last one used; 0 = off
+
+    def __post_init__(self) -> None:
+        _non_negative(self, "min_distance", "min_interval")
+
+
+@dataclass(frozen=True)
+class ExtrinsicsConfig:
+    format: str = "xyz_rpy"  # which of the two below is used: xyz_rpy | matrix
+    xyz: tuple[float, ...] = (0.27, 0.06, -0.08)  # camera origin in the LiDAR frame, m
+    rpy: tuple[float, ...] = (-HALF_PI, 0.0, -HALF_PI)  # rad; R = Rz(yaw) Ry(pitch) Rx(roll)
+    matrix: tuple[float, ...] = KITTI_LIDAR_T_CAM  # 4 x 4 lidar_T_cam, row-major
+
+    def __post_init__(self) -> None:
+        _check(self.format in EXTRINSICS_FORMATS,
+               f"format={self.format!r}; accepted: {', '.join(EXTRINSICS_FORMATS)}")
+        _check(len(self.xyz) == 3 and all(math.isfinite(v) for v in self.xyz),
+               f"xyz={list(self.xyz)}; give 3 finite metres")
+        _check(len(self.rpy) == 3 and all(math.isfinite(v) for v in self.rpy),
+               f"rpy={list(self.rpy)}; give 3 finite radians (roll, pitch, yaw)")
+        _check(len(self.matrix) == 16 and all(math.isfinite(v) for v in self.matrix),
+               f"matrix has {len(self.matrix)} values; give 16 finite values (4 x 4, row-major)")
+        T = np.asarray(self.matrix, np.float64).reshape(4, 4)
+        R = T[:3, :3]
+        _check(np.allclose(T[3], (0, 0, 0, 1)) and np.allclose(R @ R.T, np.eye(3), atol=1e-4)
+               and np.linalg.det(R) > 0,
+               "matrix is not a rigid transform (rotation block orthonormal with det +1, last row 0 0 0 1)")
+
+    def lidar_T_cam(self) -> np.ndarray:
+        if self.format == "matrix":
+            return np.asarray(self.matrix, np.float64).reshape(4, 4)
+        return xyz_rpy_matrix(self.xyz, self.rpy)
+
+
+def xyz_rpy_matrix(xyz: tuple[float, ...], rpy: tuple[float, ...]) -> np.ndarray:
+    """4 x 4 from a translation and roll, pitch, yaw (rad; R = Rz Ry Rx, as URDF / tf2)."""
+    r, p, y = rpy
+    cr, sr, cp, sp, cy, sy = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), math.sin(y)
+    T = np.eye(4)
+    T[:3, :3] = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]]) @ np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]]) \
+        @ np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    T[:3, 3] = xyz
+    return T
+
+
+@dataclass(frozen=True)
+class SyncConfig:
+    slop: float = 0.02  # s: depth and label images this close pair up; odometry nearest within this
+    odom_max_gap: float = 1.0  # s: odometry neighbours at most this far apart are interpolated
+    max_wait: float = 0.5  # s of wall time a cloud / camera frame waits for its pose (and camera_info)
+    image_buffer: int = 16  # unpaired depth / label images kept per stream
+    max_pending: int = 32  # clouds and camera frames waiting for poses at most (oldest dropped)
+
+    def __post_init__(self) -> None:
+        _non_negative(self, "slop", "odom_max_gap", "max_wait")
+        _check(self.image_buffer >= 1, f"image_buffer={self.image_buffer}; it must be >= 1")
+        _check(self.max_pending >= 1, f"max_pending={self.max_pending}; it must be >= 1")
+
+
+@dataclass(frozen=True)
+class MapFileConfig:
+    path: str = ""  # scan map file (.npz); "" = in memory only
+    save_on_shutdown: bool = True
+
+
+@dataclass(frozen=True)
+class WorkerConfig:
+    max_waiting: int = 8  # scans / camera frames queued for the worker (oldest dropped when full)
+
+    def __post_init__(self) -> None:
+        _check(self.max_waiting >= 1, f"max_waiting={self.max_waiting}; it must be >= 1")
+
+
+@dataclass(frozen=True)
+class DiagnosticsConfig:
+    period: float = 1.0
+    window: int = 200
+
+    def __post_init__(self) -> None:
+        _check(math.isfinite(self.period) and self.period > 0, f"period={self.period}; it must be > 0")
+        _check(self.window >= 1, f"window={self.window}; it must be >= 1")
+
+
+@dataclass(frozen=True)
+class NodeConfig:
+    lidar_topic: str = KITTI_TOPICS.lidar
+    depth_topic: str = KITTI_TOPICS.depth[0]
+    labels_topic: str = KITTI_TOPICS.labels[0]
+    camera_info_topic: str = KITTI_TOPICS.camera_info[0]
+    image_topic: str = KITTI_TOPICS.cameras[0]  # counted in diagnostics only; "" = not subscribed
+    odom_topic: str = KITTI_TOPICS.odom
+    input_qos: str = "sensor_data"
+    model: ModelConfig = field(default_factory=ModelConfig)
+    match: MatchConfig = field(default_factory=MatchConfig)
+    sequence: SequenceParams = field(default_factory=SequenceParams)
+    scan: FilterConfig = field(default_factory=FilterConfig)
+    camera: FilterConfig = field(default_factory=FilterConfig)
+    extrinsics: ExtrinsicsConfig = field(default_factory=ExtrinsicsConfig)
+    sync: SyncConfig = field(default_factory=SyncConfig)
+    map: MapFileConfig = field(default_factory=MapFileConfig)
+    worker: WorkerConfig = field(default_factory=WorkerConfig)
+    diagnostics: DiagnosticsConfig = field(default_factory=DiagnosticsConfig)
+
+    def __post_init__(self) -> None:
+        _check(self.input_qos in INPUT_QOS, f"input_qos={self.input_qos!r}; accepted: {', '.join(INPUT_QOS)}")
+        for name in ("lidar_topic", "depth_topic", "labels_topic", "camera_info_topic", "odom_topic"):
+            _check(bool(getattr(self, name)), f"{name} is empty; it is required")
+        topics = [t for t in (self.lidar_topic, self.depth_topic, self.labels_topic, self.camera_info_topic,
+                              self.image_topic, self.odom_topic) if t]
+        _check(len(set(topics)) == len(topics), f"topics {topics} repeat a name; give one topic per stream")

@@ -1,0 +1,410 @@
+"""``vseq2pc_node``: a labelled LiDAR map + a camera sequence (depth + labels) in, loop closures out.
+
+Map side: every PointCloud2 with x, y, z and ``label`` (SemanticKITTI ids) whose pose
+odometry gives becomes a map scan (thinned by ``scan.*``), or the map is loaded from
+``map.path``. Query side: depth + label images (paired by stamp) with CameraInfo, the
+camera-to-LiDAR extrinsics and the odometry pose make one camera feature per frame;
+once the vehicle is 5/10/15 m further on, the query frame's sequence is described and
+matched against the scans older than ``match.exclude_recent_s``. Outputs: ``~/loop_closure``,
+``~/candidates`` (lcpr_node's layouts; distance = 1 - probability) and ``/diagnostics``.
+Conversion, pairing and pose lookup run on the callback thread; features, the networks and
+the map on one worker thread. See ``vseq2pc_node --help``.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from functools import partial
+from typing import Any
+
+import numpy as np
+import rclpy
+import torch
+from diagnostic_msgs.msg import DiagnosticArray
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import qos_profile_sensor_data
+from rclpy.signals import SignalHandlerOptions
+from rclpy.utilities import remove_ros_args
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import Trigger
+
+from lcpr_core.errors import MapError
+from lcpr_core.preprocess.structure import camera_feature, structure_feature
+from lcpr_core.vseq2pc import SequenceBuilder, Vseq2pcNet
+from lcpr_ros.diagnostics import DiagnosticsBuilder, Health
+from lcpr_ros.errors import ConfigError, InputRejected, MapLoadError
+from lcpr_ros.node import CANDIDATE_QOS, RELIABLE_INPUT_QOS
+from lcpr_ros.poses import OdometryBuffer
+from lcpr_ros.process import StopOnSignal, spin_until
+from lcpr_ros.ros_params import declare
+from lcpr_ros.stamps import NS_PER_S, StampOrder, stamp_ns
+from lcpr_ros.stats import Counts, RateMeter, WarnOnce, Window
+
+from .config import NodeConfig
+from .inputs import CLOUD_NAN, SIZE_MISMATCH, depth_image, intrinsics, label_image, labelled_cloud, odometry_pose
+from .mapstore import open_map
+from .outputs import candidate_rows, loop_closure_msg, table_msg
+from .params import all_leaves, describe_all, make_runtime, settings_from
+from .sync import NO_PAIR, ImagePairs, MotionFilter, PoseQueue
+from .worker import FifoWorker
+
+NODE_NAME = "vseq2pc"
+BUSY = "worker: item dropped while busy"
+FAILED = "worker: processing failed"
+RELEASE_PERIOD = 0.05
+SHUTDOWN_TIMEOUT = 60.0
+
+
+@dataclass
+class ScanItem:
+    stamp_ns: int
+    points: np.ndarray
+    labels: np.ndarray
+    pose: np.ndarray
+    arrival: float
+
+
+@dataclass
+class CameraItem:
+    stamp_ns: int
+    depth: np.ndarray
+    labels: np.ndarray
+    K: np.ndarray
+    pose: np.ndarray
+    arrival: float
+
+
+def build_net(cfg: NodeConfig) -> Vseq2pcNet:
+    m = cfg.model
+    try:
+        if m.threads:
+            torch.set_num_threads(m.threads)
+        if m.sequence:
+            return Vseq2pcNet.from_files(sequence=m.sequence, descriptor=m.descriptor, device=m.device)
+        return Vseq2pcNet.seeded(m.seed, device=m.device)
+    except Exception as err:  # noqa: BLE001 - files, formats, devices: all refuse the start
+        raise ConfigError(f"cannot build the VSeq2PC networks from the model.* parameters: {err}") from err
+
+
+class Vseq2pcNode(Node):
+    """The ``vseq2pc`` node. Raises ConfigError / MapLoadError when it cannot start."""
+
+    def __init__(self, *, parameter_overrides: list[Parameter[Any]] | None = None, **kwargs: Any) -> None:
+        super().__init__(NODE_NAME, parameter_overrides=parameter_overrides, **kwargs)
+        self._leaves = all_leaves()
+        self.settings: NodeConfig = settings_from(declare(self, self._leaves))
+        cfg = self.settings
+        log = self.get_logger()
+        self.warnings = WarnOnce(log.warning)
+        self.drops, self.fixes, self.decisions = Counts(), Counts(), Counts()
+        self.rates = RateMeter()
+        self.latency = Window(cfg.diagnostics.window)
+        self.model_time = Window(cfg.diagnostics.window)
+        self.loops = 0
+        self.session_scans = 0
+        self.queries = 0
+        self._closed = False
+
+        self.net = build_net(cfg)
+        if not cfg.model.sequence:
+            log.warning(f"model.sequence and model.descriptor are empty: seeded random weights (seed "
+                        f"{cfg.model.seed}), for testing only; matches mean nothing")
+        self.map = open_map(cfg.map.path, self.net, cfg.match.search())
+        self._map_lock = threading.Lock()
+        self.builder = SequenceBuilder(cfg.sequence.builder())
+        self._frame_index = 0
+
+        qos = RELIABLE_INPUT_QOS if cfg.input_qos == "reliable" else qos_profile_sensor_data
+        self.poses = OdometryBuffer(slop=cfg.sync.slop, max_gap=cfg.sync.odom_max_gap)
+        self.create_subscription(Odometry, cfg.odom_topic, self._on_odom, qos)  # first: poses before sensors
+        self.pairs = ImagePairs(slop=cfg.sync.slop, capacity=cfg.sync.image_buffer)
+        self.scan_queue = PoseQueue(self.poses, max_wait=cfg.sync.max_wait, capacity=cfg.sync.max_pending)
+        self.camera_queue = PoseQueue(self.poses, max_wait=cfg.sync.max_wait, capacity=cfg.sync.max_pending)
+        self._cloud_order = StampOrder()
+        self._scan_filter, self._camera_filter = MotionFilter(), MotionFilter()
+        self._camera: tuple[np.ndarray, int, int] | None = None  # K, width, height
+
+        self._loop_pub = self.create_publisher(Float64MultiArray, "~/loop_closure", CANDIDATE_QOS)
+        self._candidates_pub = self.create_publisher(Float64MultiArray, "~/candidates", CANDIDATE_QOS)
+        self._diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self._diagnostics = DiagnosticsBuilder(self.get_name())
+
+        self.create_subscription(CameraInfo, cfg.camera_info_topic, self._on_camera_info, qos)
+        self.create_subscription(PointCloud2, cfg.lidar_topic, self._on_cloud, qos)
+        self.create_subscription(Image, cfg.depth_topic, partial(self._on_image, "depth"), qos)
+        self.create_subscription(Image, cfg.labels_topic, partial(self._on_image, "labels"), qos)
+        if cfg.image_topic:
+            self.create_subscription(Image, cfg.image_topic, lambda msg: self.rates.tick(cfg.image_topic), qos)
+        self.create_service(Trigger, "~/save_map", self._on_save_map)
+        self.create_timer(RELEASE_PERIOD, self._release)
+        self.create_timer(cfg.diagnostics.period, self._publish_diagnostics)
+
+        self.worker: FifoWorker[ScanItem | CameraItem] = FifoWorker(
+            self._process, max_waiting=cfg.worker.max_waiting, on_dropped=self._on_dropped, on_error=self._on_failed)
+        self.worker.start()
+        make_runtime(self, self._leaves, self._apply)
+        log.info(f"ready: lidar {cfg.lidar_topic}, depth {cfg.depth_topic}, labels {cfg.labels_topic}, odometry "
+                 f"{cfg.odom_topic}; map {cfg.map.path or 'memory only'} with {len(self.map)} scans")
+
+    # -- inputs (callback thread) -------------------------------------------------------------
+    def _reject(self, err: InputRejected) -> None:
+        self.drops.add(err.reason)
+        self.warnings(err.reason, err.detail)
+
+    def _on_odom(self, msg: Odometry) -> None:
+        self.rates.tick(self.settings.odom_topic)
+        try:
+            pose = odometry_pose(msg)
+        except InputRejected as err:
+            self._reject(err)
+            return
+        ns = stamp_ns(msg.header)
+        refused = self.poses.offer(ns, pose, msg.header.frame_id)
+        if refused is not None:
+            self._reject(InputRejected(f"odometry: {refused}", f"stamp {ns / NS_PER_S:.9f}"))
+            return
+        self._release()
+
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        self.rates.tick(self.settings.camera_info_topic)
+        try:
+            self._camera = intrinsics(msg)
+        except InputRejected as err:
+            self._reject(err)
+
+    def _on_cloud(self, msg: PointCloud2) -> None:
+        self.rates.tick(self.settings.lidar_topic)
+        ns = stamp_ns(msg.header)
+        try:
+            points, labels, removed = labelled_cloud(msg)
+        except InputRejected as err:
+            self._reject(err)
+            return
+        refused = self._cloud_order.check(ns)
+        if refused is not None:
+            self._reject(InputRejected(f"cloud: {refused}", f"stamp {ns / NS_PER_S:.9f}"))
+            return
+        if removed:
+            self.fixes.add(CLOUD_NAN, removed)
+            self.warnings(CLOUD_NAN, f"{removed} of {removed + len(points)} points had NaN/inf x, y or z")
+        self.scan_queue.put(ns, (points, labels, time.monotonic()))
+        self._release()
+
+    def _on_image(self, kind: str, msg: Image) -> None:
+        topic = self.settings.depth_topic if kind == "depth" else self.settings.labels_topic
+        self.rates.tick(topic)
+        ns = stamp_ns(msg.header)
+        try:
+            image = depth_image(msg) if kind == "depth" else label_image(msg)
+        except InputRejected as err:
+            self._reject(InputRejected(err.reason, f"{topic}: {err.detail}"))
+            return
+        before = self.pairs.unpaired
+        refused, pair = self.pairs.offer(kind, ns, image)
+        if refused is not None:
+            self._reject(InputRejected(f"{kind}: {refused}", f"{topic} stamp {ns / NS_PER_S:.9f}"))
+            return
+        if self.pairs.unpaired > before:
+            self.drops.add(NO_PAIR, self.pairs.unpaired - before)
+            self.warnings(NO_PAIR, f"no partner within sync.slop={self.settings.sync.slop} s")
+        if pair is not None:
+            stamp, depth, labels = pair
+            if depth.shape != labels.shape:
+                self._reject(InputRejected(SIZE_MISMATCH, f"depth {depth.shape[1]} x {depth.shape[0]}, labels "
+                                                          f"{labels.shape[1]} x {labels.shape[0]}"))
+                return
+            self.camera_queue.put(stamp, (depth, labels, time.monotonic()))
+            self._release()
+
+    def _release(self) -> None:
+        if self._closed:
+            return
+        cfg = self.settings
+        before = sum(self.scan_queue.drops.values()) + sum(self.camera_queue.drops.values())
+        for item, pose in self.scan_queue.ready():
+            points, labels, arrival = item.payload
+            if not self._scan_filter.keep(item.stamp_ns, pose, min_distance=cfg.scan.min_distance,
+                                          min_interval=cfg.scan.min_interval):
+                self.decisions.add("scans skipped (scan.min_distance / min_interval)")
+                continue
+            self.worker.submit(ScanItem(item.stamp_ns, points, labels, pose, arrival))
+        for item, pose in self.camera_queue.ready(lambda payload: self._camera is not None):
+            depth, labels, arrival = item.payload
+            assert self._camera is not None
+            K, width, height = self._camera
+            if depth.shape != (height, width):
+                self._reject(InputRejected(SIZE_MISMATCH, f"images {depth.shape[1]} x {depth.shape[0]}, "
+                                                          f"camera_info {width} x {height}"))
+                continue
+            if not self._camera_filter.keep(item.stamp_ns, pose, min_distance=cfg.camera.min_distance,
+                                            min_interval=cfg.camera.min_interval):
+                self.decisions.add("camera frames skipped (camera.min_distance / min_interval)")
+                continue
+            self.worker.submit(CameraItem(item.stamp_ns, depth, labels, K, pose, arrival))
+        after = sum(self.scan_queue.drops.values()) + sum(self.camera_queue.drops.values())
+        if after > before:
+            for queue in (self.scan_queue, self.camera_queue):
+                for reason, n in queue.drops.items():
+                    self.warnings(reason, f"{n} item(s) so far")
+
+    # -- worker thread --------------------------------------------------------------------------
+    def _process(self, item: ScanItem | CameraItem) -> None:
+        start = time.monotonic()
+        if isinstance(item, ScanItem):
+            feature = structure_feature(item.points, item.labels)
+            with self._map_lock:
+                self.map.add_feature(feature, stamp=item.stamp_ns / NS_PER_S, pose=item.pose)
+            self.session_scans += 1
+            self.decisions.add("scans added")
+            self.model_time.add(time.monotonic() - start)
+            return
+        cfg = self.settings
+        feature = camera_feature(item.depth, item.labels, item.K, cfg.extrinsics.lidar_T_cam())
+        batch = self.builder.push(feature, stamp=item.stamp_ns / NS_PER_S, pose=item.pose, index=self._frame_index)
+        self._frame_index += 1
+        self.decisions.add("camera frames")
+        if batch is None:
+            return
+        with self._map_lock:
+            self.map.config = cfg.match.search()
+            results = self.map.query(batch)
+        min_p = cfg.match.min_probability
+        for q, matches in enumerate(results):
+            self.queries += 1
+            self.decisions.add("queries")
+            kept = [m for m in matches if m.probability >= min_p]
+            if not kept:
+                self.decisions.add("queries without candidates")
+                continue
+            q_stamp, q_id = float(batch.query_stamps[q]), int(batch.query_indices[q])
+            self._candidates_pub.publish(table_msg(candidate_rows(q_stamp, q_id, kept)))
+            self._loop_pub.publish(loop_closure_msg(q_stamp, kept[0]))
+            self.loops += 1
+        self.latency.add(time.monotonic() - item.arrival)
+        self.model_time.add(time.monotonic() - start)
+
+    def _on_dropped(self, item: ScanItem | CameraItem) -> None:
+        self.drops.add(BUSY)
+        self.warnings(BUSY, f"more than worker.max_waiting={self.settings.worker.max_waiting} items waiting; "
+                            "the oldest is dropped")
+
+    def _on_failed(self, item: ScanItem | CameraItem, err: Exception) -> None:
+        self.drops.add(FAILED)
+        self.warnings(f"{FAILED} ({type(err).__name__})",
+                      f"{type(item).__name__} {item.stamp_ns / NS_PER_S:.9f}: {err}; the map is kept, the node goes on")
+
+    # -- parameters, map, diagnostics ----------------------------------------------------------
+    def _apply(self, settings: NodeConfig) -> None:
+        self.settings = settings
+        self.poses.configure(slop=settings.sync.slop, max_gap=settings.sync.odom_max_gap)
+        self.pairs.slop_ns = round(settings.sync.slop * NS_PER_S)
+        for queue in (self.scan_queue, self.camera_queue):
+            queue.max_wait = settings.sync.max_wait
+
+    def save_map(self, *, timeout: float = -1) -> int:
+        """Save the map to ``map.path`` between two items; returns the number of scans."""
+        path = self.settings.map.path
+        if not path:
+            raise MapError("map.path is empty; set it (e.g. -p map.path:=/data/vseq2pc_map.npz) to save the map")
+        if not self._map_lock.acquire(timeout=timeout):
+            raise MapError(f"the map stayed busy for {timeout} s; it was not saved")
+        try:
+            self.map.save(path)
+            return len(self.map)
+        finally:
+            self._map_lock.release()
+
+    def _on_save_map(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        try:
+            count = self.save_map()
+        except MapError as err:
+            response.success, response.message = False, str(err)
+            return response
+        response.success, response.message = True, f"saved {count} scans to {self.settings.map.path}"
+        self.get_logger().info(response.message)
+        return response
+
+    def health(self) -> Health:
+        drops = self.drops.snapshot()
+        for queue in (self.scan_queue, self.camera_queue):
+            for reason, n in queue.drops.items():
+                drops[reason] = drops.get(reason, 0) + n
+        return Health(
+            rates=self.rates.rates(), totals=dict(self.rates.totals), drops=drops, fixes=self.fixes.snapshot(),
+            decisions=self.decisions.snapshot(), warnings=self.warnings.causes,
+            latency=self.latency.percentiles(50, 90, 99), model=self.model_time.percentiles(50, 90, 99),
+            map_size=len(self.map), session_keyframes=self.session_scans, loops=self.loops,
+            sync_pending=len(self.scan_queue) + len(self.camera_queue), worker_waiting=self.worker.waiting,
+            worker_busy=self.worker.busy,
+        )
+
+    def _publish_diagnostics(self) -> None:
+        sec, nanosec = self.get_clock().now().seconds_nanoseconds()
+        self._diagnostics_pub.publish(self._diagnostics.build(self.health(), sec, nanosec))
+
+    def close(self) -> None:
+        """Stop taking items, let the worker finish, then save the map (when configured)."""
+        if self._closed:
+            return
+        self._closed = True
+        log = self.get_logger()
+        if not self.worker.stop(drain=True, timeout=SHUTDOWN_TIMEOUT):
+            log.error(f"the worker is still busy after {SHUTDOWN_TIMEOUT} s")
+        cfg = self.settings.map
+        if cfg.path and cfg.save_on_shutdown:
+            try:
+                count = self.save_map(timeout=5.0)
+            except MapError as err:
+                log.error(f"map not saved at shutdown: {err}")
+            else:
+                log.info(f"saved {count} scans to {cfg.path}")
+
+
+# -- executable ---------------------------------------------------------------------------------
+def _parser() -> argparse.ArgumentParser:
+    return argparse.ArgumentParser(
+        prog="vseq2pc_node",
+        description="VSeq2PC camera-sequence to LiDAR-map loop closure (node name 'vseq2pc'). Set parameters "
+                    "with --ros-args -p name:=value or --ros-args --params-file config/vseq2pc.yaml.",
+        epilog="parameters:\n" + describe_all(),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """``vseq2pc_node``: 0 after a clean stop (Ctrl-C, SIGTERM), 1 when the node refuses to start."""
+    argv = list(sys.argv if args is None else args)
+    try:
+        user_args = remove_ros_args(argv)[1:]
+    except RuntimeError as err:
+        print(f"vseq2pc_node: {err}", file=sys.stderr)
+        return 2
+    _parser().parse_args(user_args)
+    with StopOnSignal() as stop:
+        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+        try:
+            try:
+                node = Vseq2pcNode()
+            except (ConfigError, MapLoadError) as err:
+                rclpy.logging.get_logger(NODE_NAME).error(f"cannot start: {err}")
+                return 1
+            try:
+                spin_until(node, stop.event)
+            finally:
+                node.get_logger().info("shutting down: finishing queued items, then saving the map")
+                node.close()
+                node.destroy_node()
+        finally:
+            rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

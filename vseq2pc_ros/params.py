@@ -1,0 +1,138 @@
+"""NodeConfig <-> ROS parameters, reusing lcpr_ros's generic dataclass walker.
+
+Every leaf of :class:`~vseq2pc_ros.config.NodeConfig` is one parameter named by its
+dotted path (``match.top_k``, ``extrinsics.rpy``, ``map.path`` ...), its default the
+dataclass default. Descriptions, ranges and the run-time-settable flag come from
+:data:`DOCS` below (not lcpr_node's table: the names overlap but mean other things).
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from lcpr_ros.errors import ConfigError
+from lcpr_ros.param_docs import ParamDoc
+from lcpr_ros.params import Leaf, build, leaves, to_yaml
+from lcpr_ros.ros_params import RuntimeParameters, current_values
+
+from .config import EXTRINSICS_FORMATS, INPUT_QOS, NodeConfig
+
+BIG = 2**31 - 1
+
+YAML_HEADER = """vseq2pc_node parameters (node name vseq2pc) with their defaults, from vseq2pc_ros.config.NodeConfig.
+Use: vseq2pc_node --ros-args --params-file config/vseq2pc.yaml
+Regenerate after adding fields:
+  python -c "from vseq2pc_ros.params import *; print(yaml_text(), end='')" > config/vseq2pc.yaml
+"""
+
+DOCS: dict[str, ParamDoc] = {
+    "lidar_topic": ParamDoc("sensor_msgs/PointCloud2 with x, y, z and a label field (SemanticKITTI ids) for the map"),
+    "depth_topic": ParamDoc("sensor_msgs/Image metric depth: 32FC1 metres or 16UC1 millimetres (0 = unknown)"),
+    "labels_topic": ParamDoc("sensor_msgs/Image SemanticKITTI label ids (mono8/8UC1/mono16/16UC1, 32SC1 = uint32 "
+                             "bits), pixel-aligned with the depth image"),
+    "camera_info_topic": ParamDoc("sensor_msgs/CameraInfo of the depth/label camera (pinhole K, no distortion)"),
+    "image_topic": ParamDoc("the colour image; only counted in /diagnostics (the network reads depth + labels); "
+                            "empty = not subscribed"),
+    "odom_topic": ParamDoc("nav_msgs/Odometry: poses at cloud and camera stamps (sequence distances, map poses)"),
+    "input_qos": ParamDoc("QoS of the sensor subscriptions: sensor_data (best effort) or reliable (bag replay)",
+                          choices=INPUT_QOS),
+    "model.sequence": ParamDoc("VSeq2PC sequence-model weights; empty (with model.descriptor empty) = seeded "
+                               "random weights, testing only"),
+    "model.descriptor": ParamDoc("VSeq2PC descriptor-model weights; a map file must have been made with them"),
+    "model.seed": ParamDoc("seed of the random weights (both weight files empty)", 0, BIG),
+    "model.device": ParamDoc("torch device, e.g. cpu or cuda:0"),
+    "model.threads": ParamDoc("torch intra-op threads; 0 = torch's default", 0, 1024),
+    "match.top_k": ParamDoc("candidates per query", 1, 1000, dynamic=True),
+    "match.exclude_recent_s": ParamDoc("scans stamped later than the query stamp minus this are not matched",
+                                       0.0, 1e9, dynamic=True),
+    "match.min_probability": ParamDoc("candidates with a lower match probability are not published",
+                                      0.0, 1.0, dynamic=True),
+    "match.prefilter": ParamDoc("0 = score every scan; M = FAISS top-M scans by descriptor distance first",
+                                0, BIG, dynamic=True),
+    "sequence.offsets": ParamDoc("m after the query frame of the sequence's later frames (ascending)"),
+    "sequence.min_query_spacing": ParamDoc("m between query frames; 0 = every camera frame", 0.0, 1e6),
+    "sequence.max_pending": ParamDoc("queries waiting for their last frame at most", 1, BIG),
+    "scan.min_distance": ParamDoc("m travelled between clouds added to the map; 0 = every cloud", 0.0, 1e6,
+                                  dynamic=True),
+    "scan.min_interval": ParamDoc("s (header stamps) between clouds added to the map; 0 = off", 0.0, 3600.0,
+                                  dynamic=True),
+    "camera.min_distance": ParamDoc("m travelled between camera frames used; 0 = every frame", 0.0, 1e6,
+                                    dynamic=True),
+    "camera.min_interval": ParamDoc("s (header stamps) between camera frames used; 0 = off", 0.0, 3600.0,
+                                    dynamic=True),
+    "extrinsics.format": ParamDoc("which camera-to-LiDAR transform is used: xyz_rpy or matrix",
+                                  choices=EXTRINSICS_FORMATS, dynamic=True),
+    "extrinsics.xyz": ParamDoc("camera optical-frame origin in the LiDAR frame, m (default: KITTI-like rig)",
+                               dynamic=True),
+    "extrinsics.rpy": ParamDoc("roll, pitch, yaw of the optical frame in the LiDAR frame, rad (R = Rz Ry Rx)",
+                               dynamic=True),
+    "extrinsics.matrix": ParamDoc("lidar_T_cam 4 x 4 row-major (16 values), used when extrinsics.format = matrix",
+                                  dynamic=True),
+    "sync.slop": ParamDoc("s: depth and label images this close pair up; odometry nearest within this",
+                          0.0, 10.0, dynamic=True),
+    "sync.odom_max_gap": ParamDoc("s: odometry neighbours at most this far apart are interpolated", 0.0, 60.0,
+                                  dynamic=True),
+    "sync.max_wait": ParamDoc("s of wall time a cloud or camera frame waits for its pose and camera_info",
+                              0.0, 60.0, dynamic=True),
+    "sync.image_buffer": ParamDoc("unpaired depth / label images kept per stream", 1, 1000),
+    "sync.max_pending": ParamDoc("clouds and camera frames waiting for a pose at most (oldest dropped)", 1, 10000),
+    "map.path": ParamDoc("scan map file (.npz), loaded at start when it exists, saved on ~/save_map and at "
+                         "shutdown; empty = in memory only"),
+    "map.save_on_shutdown": ParamDoc("save the map to map.path when the node stops (Ctrl-C, SIGTERM)"),
+    "worker.max_waiting": ParamDoc("clouds / camera frames queued for the worker (oldest dropped when full)",
+                                   1, 100000),
+    "diagnostics.period": ParamDoc("s between /diagnostics messages", 0.05, 3600.0),
+    "diagnostics.window": ParamDoc("latest items in the latency percentiles", 1, 100000),
+}
+
+
+@dataclass(frozen=True)
+class VLeaf(Leaf):
+    """A Leaf described by this node's table."""
+
+    @property
+    def doc(self) -> ParamDoc:
+        return DOCS.get(self.name) or ParamDoc(f"{self.owner}.{self.name.rsplit('.', 1)[-1]}")
+
+
+def all_leaves() -> list[VLeaf]:
+    return [VLeaf(leaf.name, leaf.owner, leaf.kind, leaf.array, leaf.default) for leaf in leaves(NodeConfig())]
+
+
+def settings_from(values: Mapping[str, Any]) -> NodeConfig:
+    """NodeConfig from Python-typed parameter values; ConfigError with the reason if refused."""
+    return build(NodeConfig, values)
+
+
+def yaml_text() -> str:
+    return to_yaml(all_leaves(), header=YAML_HEADER)
+
+
+class NodeParameters(RuntimeParameters):
+    """lcpr_ros's run-time validation, building this node's config."""
+
+    def _candidate(self, changes: Sequence[Parameter[Any]]) -> Any:  # type: ignore[override]
+        values = current_values(self._node, list(self._leaves.values()))
+        for param in changes:
+            leaf = self._leaves.get(param.name)
+            if leaf is None:
+                continue
+            try:
+                values[param.name] = leaf.to_python(param.value)
+            except (TypeError, ValueError) as err:
+                raise ConfigError(f"parameter {param.name}: {param.value!r} is not a {leaf.kind.__name__}") from err
+        return settings_from(values)
+
+
+def make_runtime(node: Node, leaves_: Sequence[Leaf], apply: Any) -> NodeParameters:
+    return NodeParameters(node, leaves_, apply)
+
+
+def describe_all() -> str:
+    from lcpr_ros.params import describe
+
+    return describe(all_leaves())

@@ -1,0 +1,138 @@
+"""Pairing depth and label images by stamp, and holding clouds / camera frames until their pose is known.
+
+Pure Python (no ROS): the node calls these on its callback thread only.
+"""
+from __future__ import annotations
+
+import time
+from collections import Counter, deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from lcpr_ros.poses import PoseSource
+from lcpr_ros.stamps import NS_PER_S, StampOrder
+
+NO_PAIR = "camera: depth or labels image without partner"
+NO_POSE = "no pose: odometry does not cover the stamp"
+POSE_TIMEOUT = "no pose: odometry did not arrive in time"
+NO_CAMERA_INFO = "camera: no camera_info"
+QUEUE_FULL = "sync: too many items waiting for poses"
+
+
+class ImagePairs:
+    """Depth and label images of one camera; a pair comes out once both stamps agree within ``slop``."""
+
+    def __init__(self, *, slop: float, capacity: int) -> None:
+        self.slop_ns = round(slop * NS_PER_S)
+        self.capacity = capacity
+        self._buffers: dict[str, deque[tuple[int, Any]]] = {"depth": deque(), "labels": deque()}
+        self.orders = {"depth": StampOrder(), "labels": StampOrder()}
+        self.unpaired = 0  # images given up without a partner
+
+    def offer(self, kind: str, stamp_ns: int, image: Any) -> tuple[str | None, tuple[int, Any, Any] | None]:
+        """(refusal reason or None, (stamp_ns, depth, labels) when a pair completed or None)."""
+        refused = self.orders[kind].check(stamp_ns)
+        if refused is not None:
+            return refused, None
+        other_kind = "labels" if kind == "depth" else "depth"
+        other = self._buffers[other_kind]
+        best = None
+        for i, (ns, _) in enumerate(other):
+            if abs(ns - stamp_ns) <= self.slop_ns and (best is None or abs(ns - stamp_ns) < abs(other[best][0] - stamp_ns)):
+                best = i
+        if best is None:
+            mine = self._buffers[kind]
+            mine.append((stamp_ns, image))
+            while len(mine) > self.capacity:
+                mine.popleft()
+                self.unpaired += 1
+            return None, None
+        ns, partner = other[best]
+        for _ in range(best + 1):  # older unpaired partners will never pair (stamps increase)
+            other.popleft()
+        self.unpaired += best
+        mine = self._buffers[kind]
+        while mine and mine[0][0] < stamp_ns:
+            mine.popleft()
+            self.unpaired += 1
+        stamp = min(ns, stamp_ns)
+        pair = (stamp, image, partner) if kind == "depth" else (stamp, partner, image)
+        return None, pair
+
+
+@dataclass
+class Waiting:
+    stamp_ns: int
+    payload: Any
+    arrival: float
+
+
+class PoseQueue:
+    """Items (clouds, camera frames) in stamp order, released with their pose once odometry covers them.
+
+    An item whose pose cannot come (odometry already newer, no pose within the tolerances) or
+    does not come within ``max_wait`` s of wall time is dropped with a reason.
+    """
+
+    def __init__(self, poses: PoseSource, *, max_wait: float, capacity: int,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.poses = poses
+        self.max_wait = max_wait
+        self.capacity = capacity
+        self._clock = clock
+        self._items: deque[Waiting] = deque()
+        self.drops: Counter[str] = Counter()
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def put(self, stamp_ns: int, payload: Any) -> None:
+        self._items.append(Waiting(stamp_ns, payload, self._clock()))
+        while len(self._items) > self.capacity:
+            self._items.popleft()
+            self.drops[QUEUE_FULL] += 1
+
+    def ready(self, extra_ready: Callable[[Any], bool] = lambda payload: True,
+              extra_reason: str = NO_CAMERA_INFO) -> list[tuple[Waiting, np.ndarray]]:
+        """Items whose pose is known (and ``extra_ready``), in order; items past hope are dropped."""
+        out = []
+        now = self._clock()
+        while self._items:
+            item = self._items[0]
+            pose = self.poses.pose_at(item.stamp_ns)
+            if pose is not None and extra_ready(item.payload):
+                self._items.popleft()
+                out.append((item, pose))
+                continue
+            newest = self.poses.newest
+            if pose is None and newest is not None and newest > item.stamp_ns:
+                self._items.popleft()
+                self.drops[NO_POSE] += 1
+                continue
+            if now - item.arrival > self.max_wait:
+                self._items.popleft()
+                self.drops[POSE_TIMEOUT if pose is None else extra_reason] += 1
+                continue
+            break  # later items are newer: they wait too
+        return out
+
+
+class MotionFilter:
+    """Keeps an item when it is at least ``min_distance`` m and ``min_interval`` s after the last kept one."""
+
+    def __init__(self) -> None:
+        self._last_xy: np.ndarray | None = None
+        self._last_ns: int | None = None
+
+    def keep(self, stamp_ns: int, pose: np.ndarray, *, min_distance: float, min_interval: float) -> bool:
+        xy = np.asarray(pose)[:2, 3]
+        if self._last_ns is not None:
+            if min_interval > 0 and stamp_ns - self._last_ns < min_interval * NS_PER_S:
+                return False
+            if min_distance > 0 and self._last_xy is not None and float(np.hypot(*(xy - self._last_xy))) < min_distance:
+                return False
+        self._last_ns, self._last_xy = stamp_ns, xy.copy()
+        return True
