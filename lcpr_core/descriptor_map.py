@@ -25,6 +25,7 @@ from numpy.typing import ArrayLike
 
 from .atomic import atomic_path
 from .errors import MapError, MapSchemaError
+from .growable import GrowableArray
 
 __all__ = ["MapConfig", "Match", "DescriptorMap", "INDEX_TYPES", "SCHEMA_VERSION"]
 
@@ -81,32 +82,6 @@ class Match:
     rank: int
 
 
-class _Column:
-    """A numpy array that grows by amortised doubling; ``view()`` shows the filled rows."""
-
-    def __init__(self, dtype: type | np.dtype, width: tuple[int, ...] = ()) -> None:
-        self._data = np.empty((16, *width), dtype=dtype)
-        self._n = 0
-
-    def __len__(self) -> int:
-        return self._n
-
-    def extend(self, values: np.ndarray) -> None:
-        need = self._n + len(values)
-        if need > len(self._data):
-            grown = np.empty((max(need, 2 * len(self._data)), *self._data.shape[1:]), dtype=self._data.dtype)
-            grown[: self._n] = self._data[: self._n]
-            self._data = grown
-        self._data[self._n : need] = values
-        self._n = need
-
-    def view(self) -> np.ndarray:
-        """Read-only view of the filled rows (a snapshot: later appends don't show)."""
-        out = self._data[: self._n]
-        out.flags.writeable = False
-        return out
-
-
 class DescriptorMap:
     """Place descriptors (N x D float32) with id, stamp, pose and source per entry.
 
@@ -119,10 +94,10 @@ class DescriptorMap:
         self._config = config if config is not None else MapConfig()
         self._index, self._storage = _make_index(self._config)
         self._ef_search = self._config.hnsw_ef_search
-        self._ids = _Column(np.int64)
-        self._stamps = _Column(np.float64)
-        self._poses = _Column(np.float64, (3,))
-        self._source_codes = _Column(np.int32)
+        self._ids = GrowableArray(np.int64)
+        self._stamps = GrowableArray(np.float64)
+        self._poses = GrowableArray(np.float64, (3,))
+        self._source_codes = GrowableArray(np.int32)
         self._source_names: list[str] = []
         self._source_lookup: dict[str, int] = {}
         self._next_id = 0

@@ -30,6 +30,7 @@ import torch
 
 from ..atomic import atomic_path
 from ..errors import InputShapeError, MapError, MapSchemaError
+from ..growable import GrowableArray
 from ..models import DescriptorModel
 from ..preprocess.structure import structure_feature
 from .net import DESCRIPTOR_DIM, SLICES, Vseq2pcNet
@@ -98,31 +99,6 @@ def head_logits(head: DescriptorModel, query: torch.Tensor, slices: torch.Tensor
     return best.values, best.indices
 
 
-class _Grow:
-    """A numpy array grown by doubling; ``view()`` is the filled part, read-only."""
-
-    def __init__(self, dtype: type | np.dtype, width: tuple[int, ...] = ()) -> None:
-        self._data = np.empty((16, *width), dtype=dtype)
-        self._n = 0
-
-    def __len__(self) -> int:
-        return self._n
-
-    def extend(self, values: np.ndarray) -> None:
-        need = self._n + len(values)
-        if need > len(self._data):
-            grown = np.empty((max(need, 2 * len(self._data)), *self._data.shape[1:]), dtype=self._data.dtype)
-            grown[: self._n] = self._data[: self._n]
-            self._data = grown
-        self._data[self._n : need] = values
-        self._n = need
-
-    def view(self) -> np.ndarray:
-        out = self._data[: self._n]
-        out.flags.writeable = False
-        return out
-
-
 class ScanDatabase:
     """Slice descriptors (N x 8 x 288) with id, stamp and pose per scan; rows count from 0 in insertion order.
 
@@ -132,9 +108,9 @@ class ScanDatabase:
     def __init__(self, *, weights_id: str = "") -> None:
         self.weights_id = weights_id
         self._index = faiss.IndexFlatL2(DESCRIPTOR_DIM)  # N * 8 slice rows: the only copy of the descriptors
-        self._ids = _Grow(np.int64)
-        self._stamps = _Grow(np.float64)
-        self._poses = _Grow(np.float64, (4, 4))
+        self._ids = GrowableArray(np.int64)
+        self._stamps = GrowableArray(np.float64)
+        self._poses = GrowableArray(np.float64, (4, 4))
         self._next_id = 0
         self._stamps_sorted = True
 
