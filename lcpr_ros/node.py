@@ -15,14 +15,11 @@ from collections.abc import Callable, Sequence
 from functools import partial
 from typing import Any
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-from rclpy.signals import SignalHandlerOptions
-from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
@@ -34,14 +31,14 @@ from lcpr_core.preprocess.camera import CameraInput
 
 from .config import NodeConfig
 from .diagnostics import DiagnosticsBuilder, Health
-from .errors import ConfigError, InputRejected, MapLoadError
+from .errors import ConfigError, InputRejected
 from .inputs import CLOUD_NAN, camera_input, cloud_points, compressed_payload, odometry_pose, raw_payload
 from .mapstore import load_prior_map, save_map
 from .markers import LoopMarkers, MarkerSink, NoMarkers
 from .outputs import candidates_msg, loop_closure_msg
 from .params import Settings, all_leaves, describe, settings_from
 from .poses import NoPoses, OdometryBuffer, PoseSource
-from .process import StopOnSignal, spin_until
+from .process import run_node
 from .ros_params import RuntimeParameters, declare
 from .stamps import NS_PER_S, stamp_ns
 from .stats import Counts, RateMeter, WarnOnce, Window
@@ -315,31 +312,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(args: Sequence[str] | None = None) -> int:
     """``lcpr_node``: 0 after a clean stop (Ctrl-C, SIGTERM), 1 when the node refuses to start."""
-    argv = list(sys.argv if args is None else args)
-    try:
-        user_args = remove_ros_args(argv)[1:]
-    except RuntimeError as err:  # rcl refuses a malformed --ros-args section (RCLInvalidROSArgsError)
-        print(f"lcpr_node: {err}", file=sys.stderr)
-        return 2
-    _parser().parse_args(user_args)
-    with StopOnSignal() as stop:
-        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-        try:
-            try:
-                node = LcprNode()
-            except (ConfigError, MapLoadError) as err:
-                rclpy.logging.get_logger(NODE_NAME).error(f"cannot start: {err}")
-                return 1
-            try:
-                spin_until(node, stop.event)
-            finally:
-                node.get_logger().info("shutting down: finishing the current frame, then saving the map")
-                node.close()
-                node.destroy_node()
-        finally:
-            rclpy.try_shutdown()
-    return 0
-
+    return run_node(LcprNode, parser=_parser(), argv=args, closing="finishing the current frame, then saving the map")
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -1,14 +1,21 @@
 """Running a node as a process: stop on SIGINT/SIGTERM, spin until then, then an orderly close."""
 from __future__ import annotations
 
+import argparse
 import signal
+import sys
 import threading
+from collections.abc import Callable, Sequence
 from types import FrameType, TracebackType
 from typing import Any
 
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
+from rclpy.utilities import remove_ros_args
+
+from .errors import ConfigError, MapLoadError
 
 
 class StopOnSignal:
@@ -45,3 +52,42 @@ def spin_until(node: Node, stop: threading.Event, *, period: float = 0.1) -> Non
             executor.spin_once(timeout_sec=period)
     finally:
         executor.shutdown()
+
+
+def run_node(
+    make_node: Callable[[], Any],
+    *,
+    parser: argparse.ArgumentParser,
+    argv: Sequence[str] | None,
+    closing: str,
+) -> int:
+    """The life of a node process: 0 after a clean stop (Ctrl-C, SIGTERM), 1 when the node
+    refuses to start (bad parameters, a bad map file), 2 for a malformed command line.
+
+    ``make_node`` builds the node (raising ConfigError or MapLoadError to refuse);
+    ``closing`` is logged before the node's ``close()`` (which finishes work and saves).
+    """
+    args = list(sys.argv if argv is None else argv)
+    try:
+        user_args = remove_ros_args(args)[1:]
+    except RuntimeError as err:  # rcl refuses a malformed --ros-args section (RCLInvalidROSArgsError)
+        print(f"{parser.prog}: {err}", file=sys.stderr)
+        return 2
+    parser.parse_args(user_args)
+    with StopOnSignal() as stop:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+        try:
+            try:
+                node = make_node()
+            except (ConfigError, MapLoadError) as err:
+                rclpy.logging.get_logger(parser.prog).error(f"cannot start: {err}")
+                return 1
+            try:
+                spin_until(node, stop.event)
+            finally:
+                node.get_logger().info(f"shutting down: {closing}")
+                node.close()
+                node.destroy_node()
+        finally:
+            rclpy.try_shutdown()
+    return 0

@@ -22,15 +22,12 @@ from functools import partial
 from typing import Any
 
 import numpy as np
-import rclpy
 import torch
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
-from rclpy.signals import SignalHandlerOptions
-from rclpy.utilities import remove_ros_args
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
@@ -39,10 +36,10 @@ from lcpr_core.errors import MapError
 from lcpr_core.preprocess.structure import camera_feature, structure_feature
 from lcpr_core.vseq2pc import SequenceBuilder, Vseq2pcNet
 from lcpr_ros.diagnostics import DiagnosticsBuilder, Health
-from lcpr_ros.errors import ConfigError, InputRejected, MapLoadError
+from lcpr_ros.errors import ConfigError, InputRejected
 from lcpr_ros.node import CANDIDATE_QOS, RELIABLE_INPUT_QOS
 from lcpr_ros.poses import OdometryBuffer
-from lcpr_ros.process import StopOnSignal, spin_until
+from lcpr_ros.process import run_node
 from lcpr_ros.ros_params import declare
 from lcpr_ros.stamps import NS_PER_S, StampOrder, stamp_ns
 from lcpr_ros.stats import Counts, RateMeter, WarnOnce, Window
@@ -380,31 +377,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(args: Sequence[str] | None = None) -> int:
     """``vseq2pc_node``: 0 after a clean stop (Ctrl-C, SIGTERM), 1 when the node refuses to start."""
-    argv = list(sys.argv if args is None else args)
-    try:
-        user_args = remove_ros_args(argv)[1:]
-    except RuntimeError as err:
-        print(f"vseq2pc_node: {err}", file=sys.stderr)
-        return 2
-    _parser().parse_args(user_args)
-    with StopOnSignal() as stop:
-        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-        try:
-            try:
-                node = Vseq2pcNode()
-            except (ConfigError, MapLoadError) as err:
-                rclpy.logging.get_logger(NODE_NAME).error(f"cannot start: {err}")
-                return 1
-            try:
-                spin_until(node, stop.event)
-            finally:
-                node.get_logger().info("shutting down: finishing queued items, then saving the map")
-                node.close()
-                node.destroy_node()
-        finally:
-            rclpy.try_shutdown()
-    return 0
-
+    return run_node(Vseq2pcNode, parser=_parser(), argv=args, closing="finishing queued items, then saving the map")
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -121,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
     test = trainer.test_recall()
     summary = {"test": test, "split": data.split.summary(), "wall_seconds": round(time.perf_counter() - start, 1)}
     (args.out / "summary.json").write_text(json.dumps(summary, indent=1))
-    print(f"test queries (last epoch): " + ", ".join(f"{k} {100 * v:.1f}%" for k, v in test.items()))
+    print("test queries (last epoch): " + ", ".join(f"{k} {100 * v:.1f}%" for k, v in test.items()))
     print(f"written: {args.out}/{{init,last,best}}.pth, history.json, curve.png, summary.json "
           f"({summary['wall_seconds']:.0f} s)")
     return 0
