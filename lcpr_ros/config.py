@@ -16,15 +16,16 @@ CAMERA_TYPES = ("auto", "compressed", "raw")
 INPUT_QOS = ("sensor_data", "reliable")
 
 
-def _check(ok: bool, message: str) -> None:
+def require(ok: bool, message: str) -> None:
+    """Raise ValueError(message) unless ``ok``: the configs' validation, shared with vseq2pc_ros."""
     if not ok:
         raise ValueError(message)
 
 
-def _finite_non_negative(obj: object, *names: str) -> None:
+def require_finite_non_negative(obj: object, *names: str) -> None:
     for name in names:
         value = getattr(obj, name)
-        _check(isinstance(value, (int, float)) and math.isfinite(value) and value >= 0,
+        require(isinstance(value, (int, float)) and math.isfinite(value) and value >= 0,
                f"{name}={value!r}; it must be a finite number >= 0")
 
 
@@ -39,10 +40,10 @@ class SyncConfig:
     max_pending: int = 8  # clouds waiting for images at most; older ones are dropped
 
     def __post_init__(self) -> None:
-        _finite_non_negative(self, "slop", "camera_timeout", "max_wait", "odom_max_gap")
-        _check(self.min_cameras >= 0, f"sync.min_cameras={self.min_cameras}; it must be >= 0")
-        _check(self.image_buffer >= 1, f"sync.image_buffer={self.image_buffer}; it must be >= 1")
-        _check(self.max_pending >= 1, f"sync.max_pending={self.max_pending}; it must be >= 1")
+        require_finite_non_negative(self, "slop", "camera_timeout", "max_wait", "odom_max_gap")
+        require(self.min_cameras >= 0, f"sync.min_cameras={self.min_cameras}; it must be >= 0")
+        require(self.image_buffer >= 1, f"sync.image_buffer={self.image_buffer}; it must be >= 1")
+        require(self.max_pending >= 1, f"sync.max_pending={self.max_pending}; it must be >= 1")
 
 
 @dataclass(frozen=True)
@@ -57,8 +58,8 @@ class DiagnosticsConfig:
     window: int = 200  # latest frames in the latency percentiles
 
     def __post_init__(self) -> None:
-        _check(math.isfinite(self.period) and self.period > 0, f"diagnostics.period={self.period}; it must be > 0")
-        _check(self.window >= 1, f"diagnostics.window={self.window}; it must be >= 1")
+        require(math.isfinite(self.period) and self.period > 0, f"diagnostics.period={self.period}; it must be > 0")
+        require(self.window >= 1, f"diagnostics.window={self.window}; it must be >= 1")
 
 
 @dataclass(frozen=True)
@@ -73,14 +74,14 @@ class NodeConfig:
     diagnostics: DiagnosticsConfig = field(default_factory=DiagnosticsConfig)
 
     def __post_init__(self) -> None:
-        _check(self.camera_type in CAMERA_TYPES,
+        require(self.camera_type in CAMERA_TYPES,
                f"camera_type={self.camera_type!r}; accepted: {', '.join(CAMERA_TYPES)}")
-        _check(self.input_qos in INPUT_QOS, f"input_qos={self.input_qos!r}; accepted: {', '.join(INPUT_QOS)}")
-        _check(len(self.camera_topics) >= 1 and all(self.camera_topics),
+        require(self.input_qos in INPUT_QOS, f"input_qos={self.input_qos!r}; accepted: {', '.join(INPUT_QOS)}")
+        require(len(self.camera_topics) >= 1 and all(self.camera_topics),
                f"camera_topics={list(self.camera_topics)}; give one non-empty topic per camera")
-        _check(len(set(self.camera_topics)) == len(self.camera_topics),
+        require(len(set(self.camera_topics)) == len(self.camera_topics),
                f"camera_topics={list(self.camera_topics)} repeat a topic; give one topic per camera")
-        _check(bool(self.lidar_topic), "lidar_topic is empty; a PointCloud2 topic is required")
+        require(bool(self.lidar_topic), "lidar_topic is empty; a PointCloud2 topic is required")
 
     def compressed(self, index: int) -> bool:
         """Whether camera ``index`` is subscribed as sensor_msgs/CompressedImage."""
@@ -92,8 +93,8 @@ class NodeConfig:
 def check_together(node: NodeConfig, detector: DetectorConfig) -> None:
     """Refuse settings that are valid alone but not together."""
     cameras = len(node.camera_topics)
-    _check(cameras == detector.model.num_cameras,
+    require(cameras == detector.model.num_cameras,
            f"camera_topics names {cameras} topics but model.num_cameras={detector.model.num_cameras}; "
            "give one topic per camera of the model")
-    _check(node.sync.min_cameras <= cameras,
+    require(node.sync.min_cameras <= cameras,
            f"sync.min_cameras={node.sync.min_cameras} is more than the {cameras} cameras in camera_topics")

@@ -14,9 +14,9 @@ import numpy as np
 
 from lcpr_core.vseq2pc.retrieval import SearchConfig
 from lcpr_core.vseq2pc.sequence import OFFSETS, SequenceConfig
+from lcpr_ros.config import INPUT_QOS, require, require_finite_non_negative
 from msg_tools.frames import KITTI_TOPICS
 
-INPUT_QOS = ("sensor_data", "reliable")
 EXTRINSICS_FORMATS = ("xyz_rpy", "matrix")
 HALF_PI = math.pi / 2
 
@@ -29,18 +29,6 @@ KITTI_LIDAR_T_CAM: tuple[float, ...] = (
 )
 
 
-def _check(ok: bool, message: str) -> None:
-    if not ok:
-        raise ValueError(message)
-
-
-def _non_negative(obj: object, *names: str) -> None:
-    for name in names:
-        value = getattr(obj, name)
-        _check(isinstance(value, (int, float)) and math.isfinite(value) and value >= 0,
-               f"{name}={value!r}; it must be a finite number >= 0")
-
-
 @dataclass(frozen=True)
 class ModelConfig:
     sequence: str = ""  # sequence-model weights (released pickled module or state dict)
@@ -50,11 +38,11 @@ class ModelConfig:
     threads: int = 0  # torch intra-op threads; 0 = torch's default
 
     def __post_init__(self) -> None:
-        _check(bool(self.sequence) == bool(self.descriptor),
+        require(bool(self.sequence) == bool(self.descriptor),
                "model.sequence and model.descriptor: give both weight files, or neither (seeded random weights)")
-        _check(self.seed >= 0, f"seed={self.seed}; it must be >= 0")
-        _check(self.threads >= 0, f"threads={self.threads}; it must be >= 0")
-        _check(bool(self.device), "device is empty; e.g. cpu or cuda:0")
+        require(self.seed >= 0, f"seed={self.seed}; it must be >= 0")
+        require(self.threads >= 0, f"threads={self.threads}; it must be >= 0")
+        require(bool(self.device), "device is empty; e.g. cpu or cuda:0")
 
 
 @dataclass(frozen=True)
@@ -65,10 +53,10 @@ class MatchConfig:
     prefilter: int = 0  # 0 = exact head on every scan; M = FAISS top-M scans first (approximate)
 
     def __post_init__(self) -> None:
-        _check(self.top_k >= 1, f"top_k={self.top_k}; it must be >= 1")
-        _non_negative(self, "exclude_recent_s")
-        _check(0.0 <= self.min_probability <= 1.0, f"min_probability={self.min_probability}; it must lie in [0, 1]")
-        _check(self.prefilter >= 0, f"prefilter={self.prefilter}; it must be >= 0 (0 = exact)")
+        require(self.top_k >= 1, f"top_k={self.top_k}; it must be >= 1")
+        require_finite_non_negative(self, "exclude_recent_s")
+        require(0.0 <= self.min_probability <= 1.0, f"min_probability={self.min_probability}; it must lie in [0, 1]")
+        require(self.prefilter >= 0, f"prefilter={self.prefilter}; it must be >= 0 (0 = exact)")
 
     def search(self) -> SearchConfig:
         return SearchConfig(k=self.top_k, exclude_recent_s=self.exclude_recent_s,
@@ -98,7 +86,7 @@ class FilterConfig:
     min_interval: float = 0.0  # s (header stamps) since the last one used; 0 = off
 
     def __post_init__(self) -> None:
-        _non_negative(self, "min_distance", "min_interval")
+        require_finite_non_negative(self, "min_distance", "min_interval")
 
 
 @dataclass(frozen=True)
@@ -109,17 +97,17 @@ class ExtrinsicsConfig:
     matrix: tuple[float, ...] = KITTI_LIDAR_T_CAM  # 4 x 4 lidar_T_cam, row-major
 
     def __post_init__(self) -> None:
-        _check(self.format in EXTRINSICS_FORMATS,
+        require(self.format in EXTRINSICS_FORMATS,
                f"format={self.format!r}; accepted: {', '.join(EXTRINSICS_FORMATS)}")
-        _check(len(self.xyz) == 3 and all(math.isfinite(v) for v in self.xyz),
+        require(len(self.xyz) == 3 and all(math.isfinite(v) for v in self.xyz),
                f"xyz={list(self.xyz)}; give 3 finite metres")
-        _check(len(self.rpy) == 3 and all(math.isfinite(v) for v in self.rpy),
+        require(len(self.rpy) == 3 and all(math.isfinite(v) for v in self.rpy),
                f"rpy={list(self.rpy)}; give 3 finite radians (roll, pitch, yaw)")
-        _check(len(self.matrix) == 16 and all(math.isfinite(v) for v in self.matrix),
+        require(len(self.matrix) == 16 and all(math.isfinite(v) for v in self.matrix),
                f"matrix has {len(self.matrix)} values; give 16 finite values (4 x 4, row-major)")
         T = np.asarray(self.matrix, np.float64).reshape(4, 4)
         R = T[:3, :3]
-        _check(np.allclose(T[3], (0, 0, 0, 1)) and np.allclose(R @ R.T, np.eye(3), atol=1e-4)
+        require(np.allclose(T[3], (0, 0, 0, 1)) and np.allclose(R @ R.T, np.eye(3), atol=1e-4)
                and np.linalg.det(R) > 0,
                "matrix is not a rigid transform (rotation block orthonormal with det +1, last row 0 0 0 1)")
 
@@ -149,9 +137,9 @@ class SyncConfig:
     max_pending: int = 32  # clouds and camera frames waiting for poses at most (oldest dropped)
 
     def __post_init__(self) -> None:
-        _non_negative(self, "slop", "odom_max_gap", "max_wait")
-        _check(self.image_buffer >= 1, f"image_buffer={self.image_buffer}; it must be >= 1")
-        _check(self.max_pending >= 1, f"max_pending={self.max_pending}; it must be >= 1")
+        require_finite_non_negative(self, "slop", "odom_max_gap", "max_wait")
+        require(self.image_buffer >= 1, f"image_buffer={self.image_buffer}; it must be >= 1")
+        require(self.max_pending >= 1, f"max_pending={self.max_pending}; it must be >= 1")
 
 
 @dataclass(frozen=True)
@@ -165,7 +153,7 @@ class WorkerConfig:
     max_waiting: int = 8  # scans / camera frames queued for the worker (oldest dropped when full)
 
     def __post_init__(self) -> None:
-        _check(self.max_waiting >= 1, f"max_waiting={self.max_waiting}; it must be >= 1")
+        require(self.max_waiting >= 1, f"max_waiting={self.max_waiting}; it must be >= 1")
 
 
 @dataclass(frozen=True)
@@ -174,8 +162,8 @@ class DiagnosticsConfig:
     window: int = 200
 
     def __post_init__(self) -> None:
-        _check(math.isfinite(self.period) and self.period > 0, f"period={self.period}; it must be > 0")
-        _check(self.window >= 1, f"window={self.window}; it must be >= 1")
+        require(math.isfinite(self.period) and self.period > 0, f"period={self.period}; it must be > 0")
+        require(self.window >= 1, f"window={self.window}; it must be >= 1")
 
 
 @dataclass(frozen=True)
@@ -199,9 +187,9 @@ class NodeConfig:
     diagnostics: DiagnosticsConfig = field(default_factory=DiagnosticsConfig)
 
     def __post_init__(self) -> None:
-        _check(self.input_qos in INPUT_QOS, f"input_qos={self.input_qos!r}; accepted: {', '.join(INPUT_QOS)}")
+        require(self.input_qos in INPUT_QOS, f"input_qos={self.input_qos!r}; accepted: {', '.join(INPUT_QOS)}")
         for name in ("lidar_topic", "depth_topic", "labels_topic", "camera_info_topic", "odom_topic"):
-            _check(bool(getattr(self, name)), f"{name} is empty; it is required")
+            require(bool(getattr(self, name)), f"{name} is empty; it is required")
         topics = [t for t in (self.lidar_topic, self.depth_topic, self.labels_topic, self.camera_info_topic,
                               self.image_topic, self.odom_topic) if t]
-        _check(len(set(topics)) == len(topics), f"topics {topics} repeat a name; give one topic per stream")
+        require(len(set(topics)) == len(topics), f"topics {topics} repeat a name; give one topic per stream")
