@@ -57,14 +57,16 @@ class RuntimeParameters:
     half of the parameters missing).
     """
 
-    def __init__(self, node: Node, leaves: Sequence[Leaf], apply: Callable[[Settings], None]) -> None:
+    def __init__(self, node: Node, leaves: Sequence[Leaf], apply: Callable[[Settings], None], *,
+                 build: Callable[[dict[str, Any]], Any] = settings_from) -> None:
         self._node = node
         self._leaves = {leaf.name: leaf for leaf in leaves}
         self._apply = apply
+        self._build = build  # parameter values -> the node's configs (raises ValueError to refuse)
         node.add_on_set_parameters_callback(self._check)
         node.add_post_set_parameters_callback(self._changed)
 
-    def _candidate(self, changes: Sequence[Parameter[Any]]) -> Settings:
+    def _candidate(self, changes: Sequence[Parameter[Any]]) -> Any:
         values = current_values(self._node, list(self._leaves.values()))
         for param in changes:
             leaf = self._leaves.get(param.name)
@@ -74,7 +76,7 @@ class RuntimeParameters:
                 values[param.name] = leaf.to_python(param.value)
             except (TypeError, ValueError) as err:
                 raise ConfigError(f"parameter {param.name}: {param.value!r} is not a {leaf.kind.__name__}") from err
-        return settings_from(values)
+        return self._build(values)
 
     def _check(self, changes: list[Parameter[Any]]) -> SetParametersResult:
         try:

@@ -12,12 +12,10 @@ from dataclasses import dataclass
 from typing import Any
 
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 
-from lcpr_ros.errors import ConfigError
 from lcpr_ros.param_docs import ParamDoc
 from lcpr_ros.params import Leaf, build, leaves, to_yaml
-from lcpr_ros.ros_params import RuntimeParameters, current_values
+from lcpr_ros.ros_params import RuntimeParameters
 
 from .config import EXTRINSICS_FORMATS, INPUT_QOS, NodeConfig
 
@@ -112,24 +110,9 @@ def yaml_text() -> str:
     return to_yaml(all_leaves(), header=YAML_HEADER)
 
 
-class NodeParameters(RuntimeParameters):
+def make_runtime(node: Node, leaves_: Sequence[Leaf], apply: Any) -> RuntimeParameters:
     """lcpr_ros's run-time validation, building this node's config."""
-
-    def _candidate(self, changes: Sequence[Parameter[Any]]) -> Any:  # type: ignore[override]
-        values = current_values(self._node, list(self._leaves.values()))
-        for param in changes:
-            leaf = self._leaves.get(param.name)
-            if leaf is None:
-                continue
-            try:
-                values[param.name] = leaf.to_python(param.value)
-            except (TypeError, ValueError) as err:
-                raise ConfigError(f"parameter {param.name}: {param.value!r} is not a {leaf.kind.__name__}") from err
-        return settings_from(values)
-
-
-def make_runtime(node: Node, leaves_: Sequence[Leaf], apply: Any) -> NodeParameters:
-    return NodeParameters(node, leaves_, apply)
+    return RuntimeParameters(node, leaves_, apply, build=settings_from)
 
 
 def describe_all() -> str:
