@@ -115,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
     from rclpy.executors import SingleThreadedExecutor
 
     from .harness import OutputListener
-    from .replay import replay
+    from .replay import replay, shared_memory_profile
 
     args.out.mkdir(parents=True, exist_ok=True)
     weights = "" if args.seeded else (args.weights or default_weights() or "")
@@ -128,32 +128,33 @@ def run(args: argparse.Namespace) -> int:
     described = weights or "seeded random initialisation (NOT a trained model: expect poor loops)"
     print(f"[2/4] starting lcpr_node (weights: {described}); its log: {log}")
     node_proc = start_node(args, weights, domain, log)
-    rclpy.init()
-    node = rclpy.create_node("lcpr_demo")
-    listener = OutputListener(node)
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
-    try:
+    with shared_memory_profile():  # the replaying participant's segment must hold whole frames (see .replay)
+        rclpy.init()
+        node = rclpy.create_node("lcpr_demo")
+        listener = OutputListener(node)
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        spinner = threading.Thread(target=executor.spin, daemon=True)
+        spinner.start()
         try:
-            listener.wait_for_publishers(timeout=args.startup_timeout)
-        except TimeoutError:
-            print(f"lcpr_demo: the node did not come up; see {log}", file=sys.stderr)
-            return 1
-        print(f"[3/4] replaying {bag.name} over DDS at {args.rate}x")
-        stats = replay(node, bag, rate=args.rate, wait_subscribers=30.0, progress=True)
-        _wait_until_quiet(listener, quiet_s=4.0, timeout=120.0)
-        detector, inputs = listener.latest_values("detector"), listener.latest_values("inputs")
-    finally:
-        node_proc.send_signal(signal.SIGINT)
-        try:
-            node_proc.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            node_proc.kill()
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.shutdown()
+            try:
+                listener.wait_for_publishers(timeout=args.startup_timeout)
+            except TimeoutError:
+                print(f"lcpr_demo: the node did not come up; see {log}", file=sys.stderr)
+                return 1
+            print(f"[3/4] replaying {bag.name} over DDS at {args.rate}x")
+            stats = replay(node, bag, rate=args.rate, wait_subscribers=30.0, progress=True)
+            _wait_until_quiet(listener, quiet_s=4.0, timeout=120.0)
+            detector, inputs = listener.latest_values("detector"), listener.latest_values("inputs")
+        finally:
+            node_proc.send_signal(signal.SIGINT)
+            try:
+                node_proc.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                node_proc.kill()
+            executor.shutdown()
+            node.destroy_node()
+            rclpy.shutdown()
     print("[4/4] scoring what the node published")
     return report(args, truth, listener.out, detector, inputs, stats.seconds, described)
 

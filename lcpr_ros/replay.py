@@ -12,17 +12,30 @@ twice as fast, ``--rate 0`` as fast as possible. Sensor-data subscribers keep on
 the last few messages per topic, so a fast replay into a slow consumer drops
 messages there, as a live sensor would.
 
+With Fast DDS (the default RMW), every message to a subscriber on this host is sent
+through the publishing participant's shared-memory segment, 512 KiB by default: less
+than one camera+LiDAR frame (a synthetic cloud alone is about 640 KB). Sending the
+cloud then recycles the buffers of the images published just before it, before the
+subscriber has read them; reliable QoS repairs them only at the writer's next
+heartbeat (every 3 s), so whole runs of images arrive seconds after their cloud.
+``lcpr_replay`` therefore gives its participant a larger segment (see
+:func:`shared_memory_profile`) unless Fast DDS is configured through its own
+environment variables.
+
     lcpr_replay /data/nuscenes_scene_0061 --rate 1 --topics /LIDAR_TOP/points /CAM_FRONT/image/compressed
 """
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import signal
 import sys
+import tempfile
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, MutableMapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -41,6 +54,37 @@ from .stamps import NS_PER_S
 
 QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+#: Shared-memory segment of the replaying participant: several frames of a nuScenes-like bag (six
+#: 1600 x 900 JPEGs and a 700 KB cloud, ~3 MB) while the subscriber reads them; Fast DDS's default is 512 KiB.
+SHM_SEGMENT_BYTES = 16 * 1024 * 1024
+#: Set by a user who configures Fast DDS; the replay then leaves its transports alone.
+FASTDDS_VARIABLES = ("FASTDDS_DEFAULT_PROFILES_FILE", "FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_BUILTIN_TRANSPORTS")
+FASTDDS_PROFILE = """<?xml version="1.0" encoding="UTF-8"?>
+<!-- lcpr_replay: Fast DDS's default transports (shared memory + UDPv4), with a larger shared-memory segment -->
+<profiles xmlns="http://www.eprosima.com">
+  <transport_descriptors>
+    <transport_descriptor>
+      <transport_id>lcpr_replay_shm</transport_id>
+      <type>SHM</type>
+      <segment_size>{segment_bytes}</segment_size>
+    </transport_descriptor>
+    <transport_descriptor>
+      <transport_id>lcpr_replay_udp</transport_id>
+      <type>UDPv4</type>
+    </transport_descriptor>
+  </transport_descriptors>
+  <participant profile_name="lcpr_replay" is_default_profile="true">
+    <rtps>
+      <useBuiltinTransports>false</useBuiltinTransports>
+      <userTransports>
+        <transport_id>lcpr_replay_shm</transport_id>
+        <transport_id>lcpr_replay_udp</transport_id>
+      </userTransports>
+    </rtps>
+  </participant>
+</profiles>
+"""
 
 
 @dataclass
@@ -62,6 +106,35 @@ def message_class(msgtype: str) -> type | None:
         return getattr(importlib.import_module(f"{package}.msg"), name)
     except (ImportError, AttributeError):
         return None
+
+
+def uses_own_fastdds_settings(environ: MutableMapping[str, str]) -> bool:
+    """True when another RMW is chosen or the user configures Fast DDS through its environment variables."""
+    rmw = environ.get("RMW_IMPLEMENTATION", "")
+    return bool(rmw and not rmw.startswith("rmw_fastrtps")) or any(environ.get(name) for name in FASTDDS_VARIABLES)
+
+
+@contextmanager
+def shared_memory_profile(
+    segment_bytes: int = SHM_SEGMENT_BYTES, *, environ: MutableMapping[str, str] | None = None
+) -> Iterator[Path | None]:
+    """Within: participants created in this process (enter before ``rclpy.init``) get a Fast DDS
+    shared-memory segment of ``segment_bytes``; yields the profile file, or None where the user's own
+    settings (:func:`uses_own_fastdds_settings`) are kept. See the module docstring for why."""
+    if segment_bytes <= 0:
+        raise ValueError(f"segment_bytes={segment_bytes}; it must be > 0")
+    environ = os.environ if environ is None else environ
+    if uses_own_fastdds_settings(environ):
+        yield None
+        return
+    with tempfile.TemporaryDirectory(prefix="lcpr_replay_") as folder:
+        path = Path(folder) / "fastdds_profile.xml"
+        path.write_text(FASTDDS_PROFILE.format(segment_bytes=int(segment_bytes)))
+        environ["FASTDDS_DEFAULT_PROFILES_FILE"] = str(path)
+        try:
+            yield path
+        finally:
+            environ.pop("FASTDDS_DEFAULT_PROFILES_FILE", None)
 
 
 def replay(
@@ -178,18 +251,21 @@ def main(args: Sequence[str] | None = None) -> int:
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
             previous[sig] = signal.signal(sig, lambda signum, frame: stop.set())
-    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node("lcpr_replay")
     try:
-        stats = replay(node, options.bag, rate=options.rate, topics=options.topics,
-                       wait_subscribers=options.wait_subscribers, stop=stop, progress=not options.no_progress,
-                       log=lambda text: node.get_logger().warning(text))
-    except (BagError, ValueError) as err:
-        node.get_logger().error(str(err))
-        return 1
+        with shared_memory_profile():
+            rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+            node = rclpy.create_node("lcpr_replay")
+            try:
+                stats = replay(node, options.bag, rate=options.rate, topics=options.topics,
+                               wait_subscribers=options.wait_subscribers, stop=stop,
+                               progress=not options.no_progress, log=lambda text: node.get_logger().warning(text))
+            except (BagError, ValueError) as err:
+                node.get_logger().error(str(err))
+                return 1
+            finally:
+                node.destroy_node()
+                rclpy.try_shutdown()
     finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     state = "interrupted after" if stats.interrupted else "published"

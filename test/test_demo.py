@@ -21,8 +21,8 @@ def test_the_demo_replays_a_drive_through_the_node_and_scores_what_it_published(
     report = json.loads((out / "demo_report.json").read_text())
     assert report["keyframes"] == 120 and report["weights"].endswith("lcpr_synth_narrow.pth")
     # every frame reached the node (reliable replay): it became a keyframe or was too soon after one.
-    # At the README's image size; with 160x90 images ~30% of the frames are released without
-    # their (received) images: a known synchroniser problem, see the closing note of this change.
+    # (At 160x90 ~30% of the frames once went without their images: Fast DDS's default shared-memory
+    # segment on the replaying side, see lcpr_ros.replay and test_ros_replay.)
     decided = int(report["detector"]["session keyframes"]) + int(report["detector"].get("frames too soon", 0))
     dropped = sum(int(v) for k, v in report["inputs"].items() if k.startswith("dropped "))
     assert decided + dropped == 120 and dropped <= 3

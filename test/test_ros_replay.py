@@ -8,6 +8,7 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -20,11 +21,11 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CompressedImage, PointCloud2
 
 from lcpr_ros.harness import synthetic_place
-from lcpr_ros.replay import message_class, replay
+from lcpr_ros.replay import message_class, replay, shared_memory_profile
 from msg_tools.bags import BagWriter
 from msg_tools.compressed import compressed_from_bytes
 from msg_tools.frames import CameraModel
-from msg_tools.pointcloud import array_to_pointcloud2
+from msg_tools.pointcloud import array_to_pointcloud2, xyz_cloud
 from msg_tools.types import Stamp
 
 REPO = Path(__file__).resolve().parents[1]
@@ -34,6 +35,9 @@ CAMERA = f"{PREFIX}/CAM_FRONT/image/compressed"
 LIDAR = f"{PREFIX}/LIDAR_TOP/points"
 STAMPS = [Stamp(1_532_402_927, 123_456_789 + 200_000_000 * i) for i in range(4)]  # exact, spans 0.6 s
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+RIG = [f"{PREFIX}/CAM_{k}/image/compressed" for k in range(6)]  # six cameras, published before each big cloud
+RIG_LIDAR = f"{PREFIX}/rig/points"
+RIG_STAMPS = [Stamp(1_700_000_000, 250_000_000 * i) for i in range(4)]
 
 
 @pytest.fixture(scope="module")
@@ -46,6 +50,22 @@ def bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
             writer.write(CAMERA, compressed_from_bytes(place.jpegs[0], frame_id="cam", stamp=stamp))
             writer.write(LIDAR, array_to_pointcloud2(place.cloud, frame_id="lidar", stamp=stamp))
         writer.write_static_transforms([camera], "lidar", np.eye(4))  # tf2_msgs: not installed here
+    return path
+
+
+@pytest.fixture(scope="module")
+def rig_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A camera+LiDAR bag whose frames (six small JPEGs, then a 1.6 MB cloud) outgrow Fast DDS's default
+    512 KiB shared-memory segment, like the demo's drives at small image sizes."""
+    path = tmp_path_factory.mktemp("rig") / "bag"
+    rng = np.random.default_rng(0)
+    with BagWriter(path) as writer:
+        for i, stamp in enumerate(RIG_STAMPS):
+            place = synthetic_place(i)
+            for topic, jpeg in zip(RIG, place.jpegs):
+                writer.write(topic, compressed_from_bytes(jpeg, frame_id="cam", stamp=stamp))
+            cloud = xyz_cloud(rng.uniform(-50, 50, (100_000, 3)))
+            writer.write(RIG_LIDAR, array_to_pointcloud2(cloud, frame_id="lidar", stamp=stamp))
     return path
 
 
@@ -150,3 +170,42 @@ def test_the_lcpr_replay_command_refuses_a_topic_the_bag_lacks(bag: Path) -> Non
     done = run_replay(str(bag), "--topics", "/nope", "--no-progress")
     assert done.returncode == 1
     assert "/nope" in done.stderr and "not in" in done.stderr
+
+
+def test_images_published_just_before_a_large_cloud_arrive_with_it(ros: tuple[Context, Node], rig_bag: Path) -> None:
+    """Fast DDS's default shared-memory segment recycled the images' buffers to send the cloud; reliable QoS
+    then repaired them only at the next heartbeat (3 s), long after the node had given up on them."""
+    node = ros[1]
+    arrivals: dict[tuple[str, Stamp], float] = {}
+
+    def on_message(topic: str, msg: object) -> None:
+        arrivals[(topic, stamp_of(msg))] = time.monotonic()
+
+    subs = [node.create_subscription(CompressedImage, topic, partial(on_message, topic), RELIABLE) for topic in RIG]
+    subs.append(node.create_subscription(PointCloud2, RIG_LIDAR, partial(on_message, RIG_LIDAR), RELIABLE))
+    try:
+        done = run_replay(str(rig_bag), "--rate", "1", "--no-progress", "--wait-subscribers", "10")
+        assert done.returncode == 0, done.stderr
+        deadline = time.monotonic() + 10
+        while len(arrivals) < 7 * len(RIG_STAMPS) and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        for sub in subs:
+            node.destroy_subscription(sub)
+    assert len(arrivals) == 7 * len(RIG_STAMPS)
+    late = {(topic, stamp): round(arrivals[(topic, stamp)] - arrivals[(RIG_LIDAR, stamp)], 2)
+            for topic in RIG for stamp in RIG_STAMPS if arrivals[(topic, stamp)] - arrivals[(RIG_LIDAR, stamp)] > 0.2}
+    assert not late, f"images later than their cloud by more than 0.2 s: {late}"
+
+
+def test_the_replay_keeps_a_users_own_fast_dds_settings_and_restores_the_environment() -> None:
+    environ: dict[str, str] = {}
+    with shared_memory_profile(4096, environ=environ) as path:
+        assert path is not None and environ["FASTDDS_DEFAULT_PROFILES_FILE"] == str(path)
+        assert "<segment_size>4096</segment_size>" in path.read_text()
+    assert environ == {} and not path.exists()
+    for own in ({"FASTDDS_DEFAULT_PROFILES_FILE": "/etc/mine.xml"}, {"FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"},
+                {"RMW_IMPLEMENTATION": "rmw_cyclonedds_cpp"}):
+        environ = dict(own)
+        with shared_memory_profile(environ=environ) as path:
+            assert path is None and environ == own
