@@ -1,9 +1,14 @@
 #!/usr/bin/env bash
-# VSeq2PC on the synthetic city (KITTI-like rig): train on one drive, evaluate on a held-out
-# drive (another seed and city), trained vs untrained vs a network-free feature match.
-# These are the commands behind the figures in README ("VSeq2PC"). ~30 min on 2 shared cores.
+# VSeq2PC on the synthetic city (KITTI-like rig): train on six drives (seeds 5, 11, 13, 17, 19,
+# 29), pick the epoch on a validation drive (seed 23), evaluate on a held-out drive (seed 7):
+# each drive is a city of its own. Trained vs untrained vs a network-free feature match. These
+# are the commands behind the figures in README ("VSeq2PC") and the bundled
+# weights/vseq2pc_synth_*.pth. About an hour on 2 idle cores (drives ~4 min each, training
+# ~22 min, evaluation ~1 min).
 #
-#   bash benchmarks/vseq2pc_train_synth.sh [OUT]      (default OUT=out/vseq2pc)
+#   bash benchmarks/vseq2pc_train_synth.sh [OUT] [--bundle]   (default OUT=out/vseq2pc)
+#
+# --bundle copies the weights with the best validation max F1 to weights/.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-.venv/bin/python}
@@ -11,8 +16,9 @@ OUT=${1:-out/vseq2pc}
 mkdir -p "$OUT"
 
 # 1. drives (front camera with depth + labels, 64-beam labelled LiDAR), then per-frame feature caches
-for pair in "train_seed5 5 1000" "heldout_seed7 7 800"; do
-  set -- $pair
+for drive in "train_seed5 5 1000" "train_seed11 11 1000" "train_seed13 13 1000" "train_seed17 17 1000" \
+             "train_seed19 19 1000" "train_seed29 29 1000" "val_seed23 23 1000" "heldout_seed7 7 800"; do
+  set -- $drive
   [ -f "$OUT/$1.npz" ] && continue
   $PY -m msg_tools.synth.cli --rig kitti --frames "$3" --seed "$2" --keyframe-spacing 1.5 --image-size 620x188 \
       --workers 1 --no-progress --out "$OUT/$1.bag"
@@ -20,14 +26,16 @@ for pair in "train_seed5 5 1000" "heldout_seed7 7 800"; do
   rm -rf "$OUT/$1.bag"   # several GB of raw images; the cache is all training needs
 done
 
-# 2. stage 1 (reconstruction) + stage 2 (joint), then 3 more stage-2 epochs with in-batch negatives
-$PY -m lcpr_core.vseq2pc.train --cache "$OUT/train_seed5.npz" --out "$OUT/run1" --pretrain-epochs 2 --epochs 5 \
-    --batch 16 --queries-per-epoch 320 --seq-base-lr 2.4e-3 --seq-warmup-epochs 0.5 --negatives 2
-$PY -m lcpr_core.vseq2pc.train --cache "$OUT/train_seed5.npz" --out "$OUT/run2" \
-    --init-sequence "$OUT/run1/sequence_model.pth" --init-descriptor "$OUT/run1/descriptor_model.pth" \
-    --pretrain-epochs 0 --epochs 3 --batch 16 --queries-per-epoch 320 --seq-base-lr 2.4e-3 \
-    --seq-warmup-epochs 0.5 --negatives 1 --in-batch
+# 2. stage 1 (reconstruction, 1 epoch) + stage 2 (joint, 12 epochs of 3520 queries, in-batch pairs)
+$PY -m lcpr_core.vseq2pc.train --cache "$OUT"/train_seed{5,11,13,17,19,29}.npz --val-cache "$OUT/val_seed23.npz" \
+    --out "$OUT/run" --pretrain-epochs 1 --epochs 12 --batch 32 --queries-per-epoch 3520 --seq-base-lr 8e-3 \
+    --seq-warmup-epochs 0.5 --negatives 1 --no-progress
 
 # 3. the paper's evaluation on the held-out drive
-$PY -m lcpr_core.vseq2pc.evaluate --cache "$OUT/heldout_seed7.npz" --weights-dir "$OUT/run2" --name "trained (run2)" \
-    --untrained --single-frame --feature-match --out "$OUT/eval_run2"
+$PY -m lcpr_core.vseq2pc.evaluate --cache "$OUT/heldout_seed7.npz" --weights-dir "$OUT/run" --which best \
+    --name "trained" --untrained --single-frame --feature-match --out "$OUT/eval"
+
+if [ "${2:-}" = "--bundle" ]; then
+  cp "$OUT/run/best_sequence_model.pth" weights/vseq2pc_synth_sequence.pth
+  cp "$OUT/run/best_descriptor_model.pth" weights/vseq2pc_synth_descriptor.pth
+fi

@@ -9,15 +9,28 @@ BUNDLED_NAME = "lcpr_synth_narrow.pth"
 #: city of its own (seed 3; neither a training city nor the demo's), from step 5 of
 #: benchmarks/lcpr_train_synth.sh.
 BUNDLED_MAX_DISTANCE = 0.39
-_CANDIDATES = (
-    Path(__file__).resolve().parents[1] / "weights" / BUNDLED_NAME,  # a source checkout
-    Path(sys.prefix) / "share" / "lcpr_loop_closure" / "weights" / BUNDLED_NAME,  # pip / colcon data_files
+#: VSeq2PC (sequence model, descriptor model) trained on synthetic KITTI-like drives, from
+#: benchmarks/vseq2pc_train_synth.sh (README, "VSeq2PC").
+VSEQ2PC_BUNDLED_NAMES = ("vseq2pc_synth_sequence.pth", "vseq2pc_synth_descriptor.pth")
+_FOLDERS = (
+    Path(__file__).resolve().parents[1] / "weights",  # a source checkout
+    Path(sys.prefix) / "share" / "lcpr_loop_closure" / "weights",  # pip / colcon data_files
 )
+
+
+def _bundled(name: str) -> str | None:
+    for folder in _FOLDERS:
+        if (folder / name).is_file():
+            return str(folder / name)
+    return None
 
 
 def default_weights() -> str | None:
     """Path of the bundled trained LCPR checkpoint, or None when this install has none."""
-    for path in _CANDIDATES:
-        if path.is_file():
-            return str(path)
-    return None
+    return _bundled(BUNDLED_NAME)
+
+
+def default_vseq2pc_weights() -> tuple[str, str] | None:
+    """Paths of the bundled trained VSeq2PC (sequence, descriptor) weights, or None when this install has none."""
+    sequence, descriptor = (_bundled(name) for name in VSEQ2PC_BUNDLED_NAMES)
+    return (sequence, descriptor) if sequence and descriptor else None

@@ -38,7 +38,7 @@ from .markers import LoopMarkers, MarkerSink, NoMarkers
 from .outputs import candidates_msg, loop_closure_msg
 from .params import Settings, all_leaves, describe, settings_from
 from .poses import NoPoses, OdometryBuffer, PoseSource
-from .process import run_node
+from .process import finish_and_save, run_node
 from .ros_params import RuntimeParameters, declare
 from .stamps import NS_PER_S, stamp_ns
 from .stats import Counts, RateMeter, WarnOnce, Window
@@ -286,17 +286,8 @@ class LcprNode(Node):
         if self._closed:
             return
         self._closed = True
-        log = self.get_logger()
-        if not self.worker.stop(drain=True, timeout=SHUTDOWN_TIMEOUT):
-            log.error(f"the detector is still busy after {SHUTDOWN_TIMEOUT} s")
-        cfg = self.settings.node.map
-        if cfg.path and cfg.save_on_shutdown:
-            try:
-                count = self.save_map(timeout=5.0)
-            except MapError as err:
-                log.error(f"map not saved at shutdown: {err}")
-            else:
-                log.info(f"saved {count} places to {cfg.path}")
+        finish_and_save(self, self.worker, self.settings.node.map, self.save_map, timeout=SHUTDOWN_TIMEOUT,
+                        what="places")
 
 
 # -- executable -------------------------------------------------------------------------------

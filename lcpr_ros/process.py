@@ -7,7 +7,7 @@ import sys
 import threading
 from collections.abc import Callable, Sequence
 from types import FrameType, TracebackType
-from typing import Any
+from typing import Any, Protocol
 
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
@@ -15,7 +15,13 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
+from lcpr_core.errors import MapError
+
 from .errors import ConfigError, MapLoadError
+
+
+class Drains(Protocol):
+    def stop(self, *, drain: bool, timeout: float | None) -> bool: ...
 
 
 class StopOnSignal:
@@ -91,3 +97,25 @@ def run_node(
         finally:
             rclpy.try_shutdown()
     return 0
+
+
+class MapFile(Protocol):
+    path: str
+    save_on_shutdown: bool
+
+
+def finish_and_save(node: Node, worker: Drains, map_file: MapFile, save_map: Callable[..., int], *,
+                    timeout: float, what: str) -> None:
+    """A node's close(): let ``worker`` finish what it holds (at most ``timeout`` s), then save the map
+    when ``map_file`` (the node's map.* settings) asks for it; failures are logged, nothing is raised (the
+    process is ending)."""
+    log = node.get_logger()
+    if not worker.stop(drain=True, timeout=timeout):
+        log.error(f"the worker is still busy after {timeout} s")
+    if map_file.path and map_file.save_on_shutdown:
+        try:
+            count = save_map(timeout=5.0)
+        except MapError as err:
+            log.error(f"map not saved at shutdown: {err}")
+        else:
+            log.info(f"saved {count} {what} to {map_file.path}")

@@ -12,7 +12,7 @@ from lcpr_core.vseq2pc import Vseq2pcNet
 from lcpr_core.vseq2pc.dataset import FeatureCache
 from lcpr_core.vseq2pc.init import seeded_models
 from lcpr_core.vseq2pc.pairs import TrainPairConfig, training_pairs
-from lcpr_core.vseq2pc.train import TrainConfig, lr_at, main, place_loss, train
+from lcpr_core.vseq2pc.train import TrainConfig, TrainData, lr_at, main, place_loss, split, train
 
 
 def line_cache(n: int = 48, step: float = 1.5, seed: int = 0) -> FeatureCache:
@@ -27,7 +27,7 @@ def line_cache(n: int = 48, step: float = 1.5, seed: int = 0) -> FeatureCache:
 
 def tiny(tmp_path: Path, **changes: object) -> TrainConfig:
     line_cache().save(tmp_path / "cache.npz")
-    base = dict(cache=str(tmp_path / "cache.npz"), out=str(tmp_path / "run"), pretrain_epochs=1, epochs=1,
+    base = dict(caches=(str(tmp_path / "cache.npz"),), out=str(tmp_path / "run"), pretrain_epochs=1, epochs=1,
                 batch=4, queries_per_epoch=8, val_fraction=0.25, val_negatives=2, progress=False,
                 seq_base_lr=0.05)
     return TrainConfig(**{**base, **changes})  # type: ignore[arg-type]
@@ -89,3 +89,49 @@ def test_pairs_losses_and_schedule_follow_the_release() -> None:
         f = seq.eval()(torch.from_numpy(line_cache().camera[:4][None]))
     inside = float(((f > 0) & (f < 1)).float().mean())
     assert inside > 0.3  # the training init starts largely inside the clamp (PyTorch's default: ~0.1 %)
+
+
+def test_drives_trained_together_keep_their_own_sequences_and_never_pair_as_positives() -> None:
+    a, b = line_cache(40, seed=1), line_cache(30, seed=2)  # both start at the origin
+    train_part, val = split([a, b], 0.25)
+    assert val is not None
+    assert len(train_part.positions) == 70 and len(train_part.scans) == 30 + 22
+    assert train_part.queries.max() < 70 and set(train_part.queries) & set(range(40, 70))
+    for q in train_part.queries:  # every sequence stays inside its drive
+        frames = train_part.sequences[q]
+        assert (frames < 40).all() if q < 40 else (frames >= 40).all()
+    assert torch.equal(train_part.camera[45], torch.from_numpy(b.camera[5]))
+    pairs = training_pairs(train_part.positions, train_part.queries, train_part.scans,
+                           config=TrainPairConfig(negatives=2), rng=np.random.default_rng(0))
+    same_drive = (pairs.query < 40) == (pairs.scan < 40)
+    assert (same_drive[pairs.positive]).all() and (pairs.label[~same_drive] < 1e-6).all()
+    assert set(val.queries) == {q for q in val.queries if (30 <= q < 40) or q >= 40 + 22}
+
+
+def test_the_command_line_takes_several_drives(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    line_cache(seed=1).save(tmp_path / "a.npz")
+    line_cache(seed=2).save(tmp_path / "b.npz")
+    code = main(["--cache", str(tmp_path / "a.npz"), str(tmp_path / "b.npz"), "--out", str(tmp_path / "cli"),
+                 "--pretrain-epochs", "0", "--epochs", "1", "--batch", "4", "--queries-per-epoch", "4",
+                 "--no-progress", "--no-in-batch"])
+    assert code == 0
+    config = json.loads((tmp_path / "cli" / "history.json").read_text())["config"]
+    assert len(config["caches"]) == 2 and config["in_batch"] is False
+
+
+def test_the_straight_through_clamp_changes_the_gradients_and_not_the_values() -> None:
+    seq, _ = seeded_models(0)
+    with torch.no_grad():
+        seq.decoder.head.bias.fill_(-5.0)  # every output cell below 0: clamped
+    frames = torch.rand(2, 4, 12, 90)
+    grads, outputs = [], []
+    for straight_through in (False, True):
+        seq.straight_through_clamp = straight_through
+        seq.zero_grad()
+        torch.manual_seed(0)  # the same training-time token mask
+        out = seq.train()(frames)
+        out.sum().backward()
+        outputs.append(out.detach())
+        grads.append(float(seq.decoder.head.bias.grad.abs().sum()))
+    assert torch.equal(outputs[0], outputs[1]) and float(outputs[0].abs().max()) == 0.0
+    assert grads[0] == 0.0 and grads[1] > 0.0

@@ -39,7 +39,7 @@ from lcpr_ros.diagnostics import DiagnosticsBuilder, Health
 from lcpr_ros.errors import ConfigError, InputRejected
 from lcpr_ros.node import CANDIDATE_QOS, RELIABLE_INPUT_QOS
 from lcpr_ros.poses import OdometryBuffer
-from lcpr_ros.process import run_node
+from lcpr_ros.process import finish_and_save, run_node
 from lcpr_ros.ros_params import declare
 from lcpr_ros.stamps import NS_PER_S, StampOrder, stamp_ns
 from lcpr_ros.stats import Counts, RateMeter, WarnOnce, Window
@@ -351,17 +351,7 @@ class Vseq2pcNode(Node):
         if self._closed:
             return
         self._closed = True
-        log = self.get_logger()
-        if not self.worker.stop(drain=True, timeout=SHUTDOWN_TIMEOUT):
-            log.error(f"the worker is still busy after {SHUTDOWN_TIMEOUT} s")
-        cfg = self.settings.map
-        if cfg.path and cfg.save_on_shutdown:
-            try:
-                count = self.save_map(timeout=5.0)
-            except MapError as err:
-                log.error(f"map not saved at shutdown: {err}")
-            else:
-                log.info(f"saved {count} scans to {cfg.path}")
+        finish_and_save(self, self.worker, self.settings.map, self.save_map, timeout=SHUTDOWN_TIMEOUT, what="scans")
 
 
 # -- executable ---------------------------------------------------------------------------------

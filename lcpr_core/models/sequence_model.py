@@ -70,7 +70,13 @@ class Decoder(nn.Module):
 
 
 class SequenceModel(nn.Module):
-    """B x K x 12 x 90 (query frame first) -> F_seq B x 12 x 90 in [0, 1]."""
+    """B x K x 12 x 90 (query frame first) -> F_seq B x 12 x 90 in [0, 1].
+
+    ``straight_through_clamp`` (a training option, not the release's): in training mode the
+    output is still clamped to [0, 1], but gradients pass the clamp as if it were not there,
+    so cells pushed out of [0, 1] can come back (with the plain clamp they never receive a
+    gradient again; see lcpr_core.vseq2pc.train). Values, and so parity, are unchanged.
+    """
 
     def __init__(
         self,
@@ -82,6 +88,7 @@ class SequenceModel(nn.Module):
         heads: int = 3,
         depth: int = 4,
         mask_ratio: float = 0.1,
+        straight_through_clamp: bool = False,
     ) -> None:
         super().__init__()
         if sectors % 2:
@@ -89,6 +96,7 @@ class SequenceModel(nn.Module):
         if not 0 <= mask_ratio < 1:
             raise ValueError(f"mask_ratio={mask_ratio}; it must be in [0, 1)")
         self.frames, self.rows, self.sectors, self.mask_ratio = frames, rows, sectors, mask_ratio
+        self.straight_through_clamp = straight_through_clamp
         self.encoder = Encoder(frames, rows, sectors, dim, heads, depth)
         self.decoder = Decoder(rows, sectors, dim, heads, depth)
 
@@ -97,7 +105,10 @@ class SequenceModel(nn.Module):
         if frames.dim() != 4 or tuple(frames.shape[1:]) != want:
             raise InputShapeError(f"frames have shape {tuple(frames.shape)}; expected B x {' x '.join(map(str, want))}")
         keep = self._kept_tokens(frames.shape[0], frames.device) if self.training else None
-        return self.decoder(self.encoder(frames, keep), keep).clamp(0, 1)
+        raw = self.decoder(self.encoder(frames, keep), keep)  # B x 12 x 90
+        if self.training and self.straight_through_clamp:
+            return raw + (raw.clamp(0, 1) - raw).detach()
+        return raw.clamp(0, 1)
 
     def _kept_tokens(self, batch: int, device: torch.device) -> torch.Tensor | None:
         tokens = self.rows * self.sectors // 2

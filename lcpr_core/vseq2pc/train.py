@@ -9,11 +9,22 @@ the descriptor model; AdamW (base 1.5e-4 x batch / 256, betas 0.9/0.95, weight d
 scaled down to train in minutes on two CPU cores (the release: 50 epochs, 10 warm-up);
 with so few steps the release's sequence-model rate barely moves it (stage-1 validation
 MSE 0.067 -> 0.064 in two short epochs), ``--seq-base-lr 2.4e-3`` (1.5e-4 at batch 16)
-reached 0.026. ``--in-batch`` scores every query of a batch against every scan sampled
-for the batch (pairs under 3 m or over 20 m, positives and negatives weighted half each):
-many more negatives per step for almost no extra compute.
+reached 0.026. Stage 2 scores every query of a batch against every scan sampled for the
+batch (in-batch pairs; pairs under 3 m or over 20 m count, positives and negatives
+weighted half each): the same loss on ~B times more pairs per step for little extra
+compute, which is what made short CPU runs learn at all. ``--no-in-batch`` scores only
+each query's own sampled scans, as the release does.
 
-Validation: the last ``val_fraction`` of the drive's frames (or a separate cache) give
+The sequence model's output is clamped to [0, 1], and a clamped cell passes no gradient. In
+stage 2 the joint loss pushed every cell of F_seq below 0 (a 12-epoch run on four drives
+ended with F_seq == 0 everywhere, so the network ignored the sequence), and no gradient
+could bring it back. Training therefore lets gradients through the clamp (straight-through;
+values unchanged); ``--no-straight-through-clamp`` trains with the plain clamp.
+
+Several drives train together (``--cache A.npz B.npz ...``): their frames are laid side by
+side ``DRIVE_SPACING_M`` apart, so a pair across drives is always a negative.
+
+Validation: the last ``val_fraction`` of each drive's frames (or a separate cache) give
 the validation queries; per epoch its loss and the max F1 of its pairs.
 
 The output folder holds ``sequence_model.pth`` (a state dict), ``descriptor_model.pth``
@@ -70,13 +81,14 @@ log = logging.getLogger(__name__)
 SEQUENCE_FILE = "sequence_model.pth"
 DESCRIPTOR_FILE = "descriptor_model.pth"
 STATE_FILE = "train_state.pt"
+DRIVE_SPACING_M = 1.0e6  # drives trained together lie this far apart: no pair across drives is a positive
 
 
 @dataclass(frozen=True)
 class TrainConfig:
     """Everything a training run depends on (the CLI's options)."""
 
-    cache: str
+    caches: tuple[str, ...]
     out: str
     val_cache: str | None = None
     val_fraction: float = 0.15
@@ -90,7 +102,8 @@ class TrainConfig:
     seq_betas: tuple[float, float] = (0.9, 0.95)
     desc_lr: float = 0.002
     margin: float = 0.2
-    in_batch: bool = False  # score every query of a batch against every sampled scan of the batch
+    in_batch: bool = True  # score every query of a batch against every sampled scan of the batch
+    straight_through_clamp: bool = True  # gradients pass the sequence model's output clamp (SequenceModel)
     pairs: TrainPairConfig = field(default_factory=TrainPairConfig)
     val_negatives: int = 10
     seed: int = 0
@@ -101,6 +114,9 @@ class TrainConfig:
     init_descriptor: str | None = None
 
     def __post_init__(self) -> None:
+        if isinstance(self.caches, (str, os.PathLike)) or not self.caches:
+            raise ValueError(f"caches={self.caches!r}; expected one or more feature cache paths")
+        object.__setattr__(self, "caches", tuple(os.fspath(c) for c in self.caches))
         for name in ("pretrain_epochs", "epochs", "val_negatives"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name}={getattr(self, name)}; expected >= 0")
@@ -144,6 +160,19 @@ class TrainData:
             complete, scans = complete[keep[complete]], scans[keep]
         return cls(torch.from_numpy(cache.camera), torch.from_numpy(cache.lidar), cache.positions, seq, complete, scans)
 
+    @classmethod
+    def concat(cls, drives: Sequence[TrainData]) -> TrainData:
+        """One dataset of several drives: frame indices renumbered, drive k moved k x ``DRIVE_SPACING_M`` in x."""
+        if len(drives) == 1:
+            return drives[0]
+        starts = np.cumsum([0] + [len(d.positions) for d in drives[:-1]])
+        positions = [d.positions + np.array([k * DRIVE_SPACING_M, 0.0, 0.0]) for k, d in enumerate(drives)]
+        sequences = [np.where(d.sequences >= 0, d.sequences + s, -1) for d, s in zip(drives, starts)]
+        return cls(torch.cat([d.camera for d in drives]), torch.cat([d.lidar for d in drives]),
+                   np.concatenate(positions), np.concatenate(sequences),
+                   np.concatenate([d.queries + s for d, s in zip(drives, starts)]),
+                   np.concatenate([d.scans + s for d, s in zip(drives, starts)]))
+
     def frames(self, queries: np.ndarray) -> torch.Tensor:
         """B x 4 x 12 x 90 camera-feature sequences of the query frames."""
         return self.camera[torch.from_numpy(self.sequences[queries])]
@@ -153,15 +182,19 @@ class TrainData:
         return self.lidar[torch.from_numpy(np.asarray(queries))][:, :, CAMERA_SECTORS]
 
 
-def split(cache: FeatureCache, val_fraction: float) -> tuple[TrainData, TrainData | None]:
-    """Training frames first, the last ``val_fraction`` of the drive for validation (its queries; scans: all)."""
+def split(caches: Sequence[FeatureCache], val_fraction: float) -> tuple[TrainData, TrainData | None]:
+    """Of each drive, the first frames train and the last ``val_fraction`` give validation queries (against
+    every scan of every drive)."""
     if val_fraction == 0:
-        return TrainData.from_cache(cache), None
-    cut = int(round(len(cache) * (1.0 - val_fraction)))
-    train = TrainData.from_cache(cache, np.arange(cut))
-    val = TrainData.from_cache(cache)
-    val.queries = val.queries[val.queries >= cut]
-    return train, val
+        return TrainData.concat([TrainData.from_cache(c) for c in caches]), None
+    train, val = [], []
+    for cache in caches:
+        cut = int(round(len(cache) * (1.0 - val_fraction)))
+        train.append(TrainData.from_cache(cache, np.arange(cut)))
+        whole = TrainData.from_cache(cache)
+        whole.queries = whole.queries[whole.queries >= cut]
+        val.append(whole)
+    return TrainData.concat(train), TrainData.concat(val)
 
 
 # ---------------------------------------------------------------------- model pieces
@@ -425,14 +458,15 @@ def train(config: TrainConfig) -> Run:
         torch.set_num_threads(config.threads)
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
-    cache = FeatureCache.load(config.cache)
-    data, val = split(cache, 0.0 if config.val_cache else config.val_fraction)
+    caches = [FeatureCache.load(path) for path in config.caches]
+    data, val = split(caches, 0.0 if config.val_cache else config.val_fraction)
     if config.val_cache:
         val = TrainData.from_cache(FeatureCache.load(config.val_cache))
     if len(data.queries) == 0:
-        raise ValueError(f"{config.cache} has no complete query sequence in its training part; drive longer "
-                         "(a sequence needs 15 m after its query frame)")
+        raise ValueError(f"{', '.join(config.caches)}: no complete query sequence in the training part; drive "
+                         "longer (a sequence needs 15 m after its query frame)")
     seq, desc = seeded_models(config.seed)
+    seq.straight_through_clamp = config.straight_through_clamp
     if config.init_sequence:
         seq.load_state_dict(load_sequence_state_dict(config.init_sequence))
     if config.init_descriptor:
@@ -487,10 +521,10 @@ def _report(h: dict[str, Any]) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    d = TrainConfig(cache="", out="")
+    d = TrainConfig(caches=("-",), out="")
     p = argparse.ArgumentParser(prog="vseq2pc_train", description="Train VSeq2PC on a feature cache "
                                 "(vseq2pc_cache): stage 1 pretrains the sequence model, stage 2 trains both.")
-    p.add_argument("--cache", required=True, help="training feature cache (.npz)")
+    p.add_argument("--cache", required=True, nargs="+", help="training feature cache(s) (.npz), one per drive")
     p.add_argument("--out", required=True, help="output folder (weights, train_state.pt, history.json, curves.png)")
     p.add_argument("--val-cache", default=None, help="validation cache (default: the last --val-fraction of --cache)")
     p.add_argument("--val-fraction", type=float, default=d.val_fraction)
@@ -504,8 +538,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--negatives", type=int, default=d.pairs.negatives, help="negatives (> 20 m) per positive")
     p.add_argument("--revisit-fraction", type=float, default=d.pairs.revisit_fraction,
                    help="share of positives taken from another pass when there is one")
-    p.add_argument("--in-batch", action="store_true",
-                   help="score each query against all scans sampled for the batch (more negatives per step)")
+    p.add_argument("--in-batch", action=argparse.BooleanOptionalAction, default=d.in_batch,
+                   help="score each query against every scan sampled for the batch (default), or only its own")
+    p.add_argument("--straight-through-clamp", action=argparse.BooleanOptionalAction,
+                   default=d.straight_through_clamp,
+                   help="let gradients pass the sequence model's [0, 1] output clamp (default), or not (the release)")
     p.add_argument("--init-sequence", default=None, help="start from these sequence weights (released or ours)")
     p.add_argument("--init-descriptor", default=None, help="start from these descriptor weights")
     p.add_argument("--seed", type=int, default=d.seed)
@@ -520,11 +557,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
         config = TrainConfig(
-            cache=args.cache, out=args.out, val_cache=args.val_cache, val_fraction=args.val_fraction,
+            caches=tuple(args.cache), out=args.out, val_cache=args.val_cache, val_fraction=args.val_fraction,
             pretrain_epochs=args.pretrain_epochs, epochs=args.epochs, batch=args.batch,
             queries_per_epoch=args.queries_per_epoch, seq_base_lr=args.seq_base_lr,
             seq_warmup_epochs=args.seq_warmup_epochs, desc_lr=args.desc_lr,
-            in_batch=args.in_batch,
+            in_batch=args.in_batch, straight_through_clamp=args.straight_through_clamp,
             pairs=TrainPairConfig(negatives=args.negatives, revisit_fraction=args.revisit_fraction),
             seed=args.seed, threads=args.threads, progress=not args.no_progress, resume=args.resume,
             init_sequence=args.init_sequence, init_descriptor=args.init_descriptor,
