@@ -1,13 +1,12 @@
 """The vseq2pc node in this process (rclpy executor in a thread), driven over real DDS on loopback.
 
-Drive: a short KITTI-like synthetic drive (msg_tools.synth, 160 x 48 images, 2.5 m between
-frames). Map clouds: for a match we can assert, each map scan is the back-projection of
-that frame's own depth + label images into the LiDAR frame, so the structure the camera
-sees later is identical to the true scan's (seeded random weights cannot tell real LiDAR
-scans apart; see the report). The weights are "oracle" weights written to files: the
-descriptor model's residual (sequence) stream is zeroed, so a sequence descriptor equals
-the query frame's slice descriptor, and its head scores -W|d_seq - d_scan| with W >= 0,
-so the identical scan ranks first. The camera sequence revisits the same poses 100 s later.
+Drive: a short KITTI-like synthetic drive (msg_tools.synth, 320 x 96 images, 2.5 m between
+frames). The map pass publishes each frame's labelled 64-beam LiDAR cloud with odometry;
+100 s later the camera pass publishes the same poses' depth + label images and CameraInfo.
+The node runs the bundled trained weights (weights/vseq2pc_synth_*.pth), so each camera
+sequence has to be told apart from the other scans of the street by the network: a
+cross-modal revisit at the map's poses. (True revisits along other paths are measured on a
+held-out drive by benchmarks/vseq2pc_train_synth.sh; see README.)
 """
 from __future__ import annotations
 
@@ -35,9 +34,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 
-from lcpr_core.preprocess.structure import camera_points
-from lcpr_core.vseq2pc import save_descriptor_weights, save_sequence_weights
-from lcpr_core.vseq2pc.init import seeded_models
+from lcpr_core.pretrained import default_vseq2pc_weights
 from lcpr_core.vseq2pc.sequence import sequence_table
 from lcpr_ros.errors import ConfigError, MapLoadError
 from lcpr_ros.harness import OutputListener
@@ -54,7 +51,8 @@ DOMAIN = random.randint(101, 200)
 PREFIX = f"/v{random.randint(0, 10**6)}"
 TOPICS = {"lidar_topic": f"{PREFIX}/points", "depth_topic": f"{PREFIX}/depth", "labels_topic": f"{PREFIX}/labels",
           "camera_info_topic": f"{PREFIX}/camera_info", "image_topic": "", "odom_topic": f"{PREFIX}/odom"}
-FRAMES = 12  # 2.5 m apart: the first 5 or 6 frames become queries (15 m on)
+FRAMES = 16  # 2.5 m apart: the first 9 or 10 frames become queries (15 m on)
+MATCHED = 4  # of the 9 or 10 queries, whose best scan lies within 3 m (the paper's positives); seeded weights: 0
 T0 = 1_700_000_000.0
 DT = 0.25
 REVISIT = 100.0  # s after the map pass
@@ -78,43 +76,28 @@ class Drive:
     poses: list[np.ndarray]
     depth: list[np.ndarray]  # float32 metres
     labels: list[np.ndarray]  # uint16
-    clouds: list[np.ndarray]  # structured x, y, z, label: the camera's structure in the LiDAR frame
+    clouds: list[np.ndarray]  # structured x, y, z, label: the labelled LiDAR scan
     info: object  # CameraModel
     weights: tuple[Path, Path]  # sequence, descriptor
 
 
-def oracle_weights(folder: Path) -> tuple[Path, Path]:
-    seq, desc = seeded_models(0)
-    with torch.no_grad():
-        for name, module in desc.named_modules():
-            if "_seq" in name and isinstance(module, torch.nn.Conv1d):
-                module.weight.zero_()
-                module.bias.zero_()
-        desc.linear[0].weight.abs_()
-        desc.linear[0].bias.zero_()
-        desc.linear[2].weight.fill_(-100.0)
-        desc.linear[2].bias.fill_(5.0)
-    paths = folder / "sequence.pth", folder / "descriptor.pth"
-    save_sequence_weights(seq, paths[0])
-    save_descriptor_weights(desc, paths[1])
-    return paths
-
-
 @pytest.fixture(scope="module")
-def drive(tmp_path_factory: pytest.TempPathFactory) -> Drive:
-    synth = SyntheticDrive(SynthConfig(rig="kitti", frames=FRAMES, route="grid", image_size=(160, 48), seed=0,
+def drive() -> Drive:
+    weights = default_vseq2pc_weights()
+    assert weights is not None, "weights/vseq2pc_synth_*.pth are missing from this checkout"
+    synth = SyntheticDrive(SynthConfig(rig="kitti", frames=FRAMES, route="grid", image_size=(320, 96), seed=0,
                                        camera_drop=0.0, keyframe_spacing=2.5))
-    cam = synth.rig.cameras[0]
-    out = Drive([], [], [], [], cam, oracle_weights(tmp_path_factory.mktemp("weights")))
+    out = Drive([], [], [], [], synth.rig.cameras[0], (Path(weights[0]), Path(weights[1])))
     for i in range(FRAMES):
-        image = synth.frame(i).cameras[0]
+        frame = synth.frame(i)
+        image = frame.cameras[0]
         assert image is not None and image.depth is not None and image.labels is not None
         out.poses.append(synth.pose(i))
         out.depth.append(image.depth.astype(np.float32))
         out.labels.append(image.labels.astype(np.uint16))
-        pts, lab = camera_points(image.depth, image.labels, cam.K, cam.base_T_cam)  # base = velodyne
-        cloud = np.zeros(len(pts), LABEL_CLOUD)
-        cloud["x"], cloud["y"], cloud["z"], cloud["label"] = pts[:, 0], pts[:, 1], pts[:, 2], lab
+        cloud = np.zeros(len(frame.cloud), LABEL_CLOUD)
+        for name in LABEL_CLOUD.names:
+            cloud[name] = frame.cloud[name]
         out.clouds.append(cloud)
     return out
 
@@ -193,7 +176,7 @@ def ros(drive: Drive, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Ros]
         rclpy.try_shutdown(context=context)
 
 
-def test_a_camera_sequence_revisiting_the_map_is_matched_to_the_scan_at_its_pose(ros: Ros, drive: Drive) -> None:
+def test_camera_sequences_revisiting_the_map_are_matched_to_the_scans_at_their_poses(ros: Ros, drive: Drive) -> None:
     for i in range(FRAMES):
         ros.odom(drive.poses[i], T0 + i * DT)
         ros.cloud(cloud_msg(drive.clouds[i], T0 + i * DT))
@@ -204,23 +187,23 @@ def test_a_camera_sequence_revisiting_the_map_is_matched_to_the_scan_at_its_pose
         ros.odom(drive.poses[i], stamp)
         ros.camera(depth_msg(drive.depth[i], stamp), labels_msg(drive.labels[i], stamp), stamp)
         time.sleep(PACE)  # the node's input queues keep 10 per topic: no bursts beyond them
-    table = sequence_table(np.array([p[:2, 3] for p in drive.poses]))
-    queries = int((table[:, 0] >= 0).sum())  # frames with a frame 15 m further on (5 or 6 here)
-    assert queries >= 4
+    xy = np.array([p[:2, 3] for p in drive.poses])
+    queries = int((sequence_table(xy)[:, 0] >= 0).sum())  # frames with a frame 15 m further on
+    assert queries >= 8
     assert ros.listener.wait(lambda o: len(o.loops) >= queries and len(o.candidates) >= queries, WAIT), \
         (queries, ros.listener.out.loops, ros.node.health())
-    loops = ros.listener.out.loops
-    for q, (query_stamp, match_stamp) in enumerate(loops[:queries]):
-        assert query_stamp == pytest.approx(T0 + REVISIT + q * DT)
-        assert match_stamp == pytest.approx(T0 + q * DT)  # the scan taken at the query's pose
+    best = []
     for q, rows in enumerate(ros.listener.out.candidates[:queries]):
         assert len(rows) == 3 and [r["rank"] for r in rows] == [0, 1, 2]
-        best = rows[0]
-        assert best["match_id"] == q and best["query_id"] == q
-        assert {"query_stamp", "match_stamp", "distance", "probability"} <= set(best)
-        assert best["distance"] == pytest.approx(1.0 - best["probability"])
+        assert {"query_stamp", "match_stamp", "distance", "probability"} <= set(rows[0])
+        assert rows[0]["query_id"] == q and rows[0]["distance"] == pytest.approx(1.0 - rows[0]["probability"])
         assert all(a["distance"] <= b["distance"] for a, b in zip(rows, rows[1:]))
-        assert np.hypot(*(drive.poses[int(best["match_id"])][:2, 3] - drive.poses[q][:2, 3])) < 1e-6
+        best.append(int(rows[0]["match_id"]))
+    for q, (query_stamp, match_stamp) in enumerate(ros.listener.out.loops[:queries]):
+        assert query_stamp == pytest.approx(T0 + REVISIT + q * DT)
+        assert match_stamp == pytest.approx(T0 + best[q] * DT)
+    off = np.hypot(*(xy[best] - xy[:queries]).T)
+    assert (off < 3.0).sum() >= MATCHED, f"best scan this far from each query: {np.round(off, 1)} m"
     assert wait_until(lambda: ros.listener.latest_values(": detector").get("loops") == str(queries), 10)
 
 

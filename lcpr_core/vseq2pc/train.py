@@ -42,7 +42,7 @@ import math
 import os
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -282,48 +282,50 @@ def _bar(total: int, desc: str, enabled: bool) -> Any:
 
 
 def pretrain_epoch(run: Run, data: TrainData, epoch: int, rng: np.random.Generator) -> float:
-    cfg = run.config
+    """One stage-1 epoch: MSE between F_seq and the query frame's forward LiDAR feature."""
     run.seq.train()
     assert run.seq_opt is not None
-    batches = _batches(_epoch_queries(data, cfg, rng), cfg.batch)
-    per_epoch = max(1, len(batches))
-    total, warm = per_epoch * cfg.pretrain_epochs, int(round(per_epoch * cfg.seq_warmup_epochs))
-    losses = []
-    with _bar(len(batches), f"stage 1 epoch {epoch}/{cfg.pretrain_epochs}", cfg.progress) as bar:
-        for i, q in enumerate(batches):
-            _set_lr(run.seq_opt, lr_at((epoch - 1) * per_epoch + i, base=cfg.seq_lr, warmup_steps=warm,
-                                       total_steps=total))
-            loss = F.mse_loss(run.seq(data.frames(q)), data.target(q))
-            run.seq_opt.zero_grad(set_to_none=True)
-            loss.backward()
-            run.seq_opt.step()
-            losses.append(loss.item())
-            bar.update()
-            bar.set_postfix(mse=f"{np.mean(losses[-20:]):.4f}")
-    return float(np.mean(losses)) if losses else float("nan")
+
+    def loss(q: np.ndarray) -> torch.Tensor:
+        return F.mse_loss(run.seq(data.frames(q)), data.target(q))
+
+    return _epoch(run, data, epoch, rng, stage=1, loss=loss, optimisers=(run.seq_opt,))
 
 
 def joint_epoch(run: Run, data: TrainData, epoch: int, rng: np.random.Generator) -> float:
-    cfg = run.config
+    """One stage-2 epoch: the place loss of each batch's pairs (both models)."""
     run.seq.train()
     run.desc.train()
     assert run.seq_opt is not None and run.desc_opt is not None
+
+    def loss(q: np.ndarray) -> torch.Tensor:
+        return _pair_loss(run, data, q, training_pairs(data.positions, q, data.scans, config=run.config.pairs, rng=rng))
+
+    return _epoch(run, data, epoch, rng, stage=2, loss=loss, optimisers=(run.seq_opt, run.desc_opt))
+
+
+def _epoch(run: Run, data: TrainData, epoch: int, rng: np.random.Generator, *, stage: int,
+           loss: Callable[[np.ndarray], torch.Tensor], optimisers: tuple[torch.optim.Optimizer, ...]) -> float:
+    """Batches of the epoch's queries: the sequence model's learning rate on its schedule, one step of
+    every optimiser per batch; returns the mean loss."""
+    cfg = run.config
+    assert run.seq_opt is not None
+    epochs = cfg.pretrain_epochs if stage == 1 else cfg.epochs
     batches = _batches(_epoch_queries(data, cfg, rng), cfg.batch)
     per_epoch = max(1, len(batches))
-    total, warm = per_epoch * cfg.epochs, int(round(per_epoch * cfg.seq_warmup_epochs))
-    losses = []
-    with _bar(len(batches), f"stage 2 epoch {epoch}/{cfg.epochs}", cfg.progress) as bar:
+    total, warm = per_epoch * epochs, int(round(per_epoch * cfg.seq_warmup_epochs))
+    losses: list[float] = []
+    with _bar(len(batches), f"stage {stage} epoch {epoch}/{epochs}", cfg.progress) as bar:
         for i, q in enumerate(batches):
             _set_lr(run.seq_opt, lr_at((epoch - 1) * per_epoch + i, base=cfg.seq_lr, warmup_steps=warm,
                                        total_steps=total))
-            pairs = training_pairs(data.positions, q, data.scans, config=cfg.pairs, rng=rng)
-            loss = _pair_loss(run, data, q, pairs)
-            run.seq_opt.zero_grad(set_to_none=True)
-            run.desc_opt.zero_grad(set_to_none=True)
-            loss.backward()
-            run.seq_opt.step()
-            run.desc_opt.step()
-            losses.append(loss.item())
+            value = loss(q)
+            for opt in optimisers:
+                opt.zero_grad(set_to_none=True)
+            value.backward()
+            for opt in optimisers:
+                opt.step()
+            losses.append(value.item())
             bar.update()
             bar.set_postfix(loss=f"{np.mean(losses[-20:]):.4f}")
     return float(np.mean(losses)) if losses else float("nan")
