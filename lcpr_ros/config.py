@@ -48,7 +48,7 @@ class SyncConfig:
 
 @dataclass(frozen=True)
 class MapFileConfig:
-    path: str = ""  # descriptor map file (.npz); "" = in memory only
+    path: str = ""  # map file (.npz); "" = in memory only
     save_on_shutdown: bool = True
 
 

@@ -26,14 +26,13 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from lcpr_core.detector import DetectorConfig, Frame, LoopDetector
-from lcpr_core.errors import MapError
 from lcpr_core.preprocess.camera import CameraInput
 
 from .config import NodeConfig
 from .diagnostics import DiagnosticsBuilder, Health
 from .errors import ConfigError, InputRejected
 from .inputs import CLOUD_NAN, camera_input, cloud_points, compressed_payload, odometry_pose, raw_payload
-from .mapstore import load_prior_map, save_map
+from .mapstore import answer_save_request, load_prior_map, save_map, save_under_lock
 from .markers import LoopMarkers, MarkerSink, NoMarkers
 from .outputs import candidates_msg, loop_closure_msg
 from .params import Settings, all_leaves, describe, settings_from
@@ -239,25 +238,13 @@ class LcprNode(Node):
 
     def save_map(self, *, timeout: float = -1) -> int:
         """Save the map to ``map.path`` between two frames; returns the number of places."""
-        path = self.settings.node.map.path
-        if not path:
-            raise MapError("map.path is empty; set it (e.g. -p map.path:=/data/lcpr_map.npz) to save the map")
-        if not self._detector_lock.acquire(timeout=timeout):
-            raise MapError(f"the detector stayed busy for {timeout} s; the map was not saved")
-        try:
-            return save_map(self.detector.map, path)
-        finally:
-            self._detector_lock.release()
+        return save_under_lock(self._detector_lock, self.settings.node.map.path,
+                               lambda path: save_map(self.detector.map, path), timeout=timeout, holder="detector",
+                               example="/data/lcpr_map.npz")
 
     def _on_save_map(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        try:
-            count = self.save_map()
-        except MapError as err:
-            response.success, response.message = False, str(err)
-            return response
-        response.success, response.message = True, f"saved {count} places to {self.settings.node.map.path}"
-        self.get_logger().info(response.message)
-        return response
+        return answer_save_request(response, self.save_map, what="places", path=self.settings.node.map.path,
+                                   log=self.get_logger().info)
 
     def health(self) -> Health:
         topics = self.settings.node.camera_topics

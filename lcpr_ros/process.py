@@ -17,6 +17,7 @@ from rclpy.utilities import remove_ros_args
 
 from lcpr_core.errors import MapError
 
+from .config import MapFileConfig
 from .errors import ConfigError, MapLoadError
 
 
@@ -99,12 +100,7 @@ def run_node(
     return 0
 
 
-class MapFile(Protocol):
-    path: str
-    save_on_shutdown: bool
-
-
-def finish_and_save(node: Node, worker: Drains, map_file: MapFile, save_map: Callable[..., int], *,
+def finish_and_save(node: Node, worker: Drains, map_file: MapFileConfig, save_map: Callable[..., int], *,
                     timeout: float, what: str) -> None:
     """A node's close(): let ``worker`` finish what it holds (at most ``timeout`` s), then save the map
     when ``map_file`` (the node's map.* settings) asks for it; failures are logged, nothing is raised (the

@@ -14,7 +14,12 @@ import numpy as np
 
 from lcpr_core.vseq2pc.retrieval import SearchConfig
 from lcpr_core.vseq2pc.sequence import OFFSETS, SequenceConfig
-from lcpr_ros.config import INPUT_QOS, require, require_finite_non_negative
+from lcpr_ros.config import (
+    INPUT_QOS,
+    MapFileConfig,
+    require,
+    require_finite_non_negative,
+)
 from msg_tools.frames import KITTI_TOPICS
 
 EXTRINSICS_FORMATS = ("xyz_rpy", "matrix")
@@ -140,12 +145,6 @@ class SyncConfig:
         require_finite_non_negative(self, "slop", "odom_max_gap", "max_wait")
         require(self.image_buffer >= 1, f"image_buffer={self.image_buffer}; it must be >= 1")
         require(self.max_pending >= 1, f"max_pending={self.max_pending}; it must be >= 1")
-
-
-@dataclass(frozen=True)
-class MapFileConfig:
-    path: str = ""  # scan map file (.npz); "" = in memory only
-    save_on_shutdown: bool = True
 
 
 @dataclass(frozen=True)

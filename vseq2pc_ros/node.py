@@ -32,13 +32,13 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
-from lcpr_core.errors import MapError
 from lcpr_core.preprocess.structure import camera_feature, structure_feature
 from lcpr_core.vseq2pc import SequenceBuilder, Vseq2pcNet
 from lcpr_ros.diagnostics import DiagnosticsBuilder, Health
 from lcpr_ros.errors import ConfigError, InputRejected
 from lcpr_ros.node import CANDIDATE_QOS, RELIABLE_INPUT_QOS
 from lcpr_ros.poses import OdometryBuffer
+from lcpr_ros.mapstore import answer_save_request, save_under_lock
 from lcpr_ros.process import finish_and_save, run_node
 from lcpr_ros.ros_params import declare
 from lcpr_ros.stamps import NS_PER_S, StampOrder, stamp_ns
@@ -307,26 +307,16 @@ class Vseq2pcNode(Node):
 
     def save_map(self, *, timeout: float = -1) -> int:
         """Save the map to ``map.path`` between two items; returns the number of scans."""
-        path = self.settings.map.path
-        if not path:
-            raise MapError("map.path is empty; set it (e.g. -p map.path:=/data/vseq2pc_map.npz) to save the map")
-        if not self._map_lock.acquire(timeout=timeout):
-            raise MapError(f"the map stayed busy for {timeout} s; it was not saved")
-        try:
+        def save(path: str) -> int:
             self.map.save(path)
             return len(self.map)
-        finally:
-            self._map_lock.release()
+
+        return save_under_lock(self._map_lock, self.settings.map.path, save, timeout=timeout, holder="map",
+                               example="/data/vseq2pc_map.npz")
 
     def _on_save_map(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        try:
-            count = self.save_map()
-        except MapError as err:
-            response.success, response.message = False, str(err)
-            return response
-        response.success, response.message = True, f"saved {count} scans to {self.settings.map.path}"
-        self.get_logger().info(response.message)
-        return response
+        return answer_save_request(response, self.save_map, what="scans", path=self.settings.map.path,
+                                   log=self.get_logger().info)
 
     def health(self) -> Health:
         drops = self.drops.snapshot()
