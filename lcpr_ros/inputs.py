@@ -37,20 +37,31 @@ IMAGE_DECODE = "image: cannot decode"
 ODOM_BAD = "odometry: bad pose"
 
 
-def cloud_points(msg: Any) -> tuple[np.ndarray, int]:
-    """PointCloud2 -> (N x 3 float32 finite points, number of non-finite points removed)."""
+def cloud_array(msg: Any) -> np.ndarray:
+    """PointCloud2 -> its points as a structured (N,) array, refusing missing x/y/z, truncated data and
+    layouts msg_tools cannot read."""
     try:
-        cloud = pointcloud2_to_array(msg, require_xyz=True).reshape(-1)
+        return pointcloud2_to_array(msg, require_xyz=True).reshape(-1)
     except MissingFieldError as err:
         raise InputRejected(CLOUD_NO_XYZ, str(err)) from err
     except PointCloudDataError as err:
         raise InputRejected(CLOUD_TRUNCATED, str(err)) from err
     except PointCloudError as err:
         raise InputRejected(CLOUD_BAD_LAYOUT, str(err)) from err
+
+
+def finite_points(cloud: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N x 3 float32 points with finite x, y, z; the (len(cloud),) mask of those points)."""
+    keep = finite_mask(cloud)
+    return np.stack([cloud["x"][keep], cloud["y"][keep], cloud["z"][keep]], axis=1).astype(np.float32), keep
+
+
+def cloud_points(msg: Any) -> tuple[np.ndarray, int]:
+    """PointCloud2 -> (N x 3 float32 finite points, number of non-finite points removed)."""
+    cloud = cloud_array(msg)
     if any(cloud.dtype[name].shape for name in ("x", "y", "z")):
         raise InputRejected(CLOUD_BAD_LAYOUT, "x, y and z must be single values per point (PointField count 1)")
-    keep = finite_mask(cloud)
-    points = np.stack([cloud["x"][keep], cloud["y"][keep], cloud["z"][keep]], axis=1).astype(np.float32)
+    points, keep = finite_points(cloud)
     return points, int(keep.size - np.count_nonzero(keep))
 
 

@@ -10,18 +10,18 @@ from typing import Any
 import numpy as np
 
 from lcpr_ros.errors import InputRejected
-from lcpr_ros.inputs import CLOUD_BAD_LAYOUT, CLOUD_NAN, CLOUD_NO_XYZ, CLOUD_TRUNCATED, odometry_pose  # noqa: F401
-from msg_tools.camera_info import camera_info_to_model
-from msg_tools.errors import (
-    CameraInfoError,
-    ImageEncodingError,
-    ImageError,
-    MissingFieldError,
-    PointCloudDataError,
-    PointCloudError,
+from lcpr_ros.inputs import (  # noqa: F401 - the shared reasons are part of this module's vocabulary
+    CLOUD_BAD_LAYOUT,
+    CLOUD_NAN,
+    CLOUD_NO_XYZ,
+    CLOUD_TRUNCATED,
+    cloud_array,
+    finite_points,
+    odometry_pose,
 )
+from msg_tools.camera_info import camera_info_to_model
+from msg_tools.errors import CameraInfoError, ImageEncodingError, ImageError
 from msg_tools.image import depth_to_metres, image_to_array
-from msg_tools.pointcloud import finite_mask, pointcloud2_to_array
 
 CLOUD_NO_LABEL = "cloud: no label field"
 DEPTH_ENCODING = "depth: unknown encoding"
@@ -36,22 +36,14 @@ LABEL_ENCODINGS = ("mono8", "8UC1", "mono16", "16UC1", "32SC1")
 
 def labelled_cloud(msg: Any) -> tuple[np.ndarray, np.ndarray, int]:
     """PointCloud2 with x, y, z and ``label`` -> (N x 3 float32 finite points, N uint32 labels, removed)."""
-    try:
-        cloud = pointcloud2_to_array(msg, require_xyz=True).reshape(-1)
-    except MissingFieldError as err:
-        raise InputRejected(CLOUD_NO_XYZ, str(err)) from err
-    except PointCloudDataError as err:
-        raise InputRejected(CLOUD_TRUNCATED, str(err)) from err
-    except PointCloudError as err:
-        raise InputRejected(CLOUD_BAD_LAYOUT, str(err)) from err
+    cloud = cloud_array(msg)
     names = cloud.dtype.names or ()
     if "label" not in names:
         raise InputRejected(CLOUD_NO_LABEL, f"the cloud has fields {list(names)}; a 'label' field "
                                             "(SemanticKITTI id per point, uint32) is required")
     if any(cloud.dtype[n].shape for n in ("x", "y", "z", "label")) or cloud.dtype["label"].kind not in "iu":
         raise InputRejected(CLOUD_BAD_LAYOUT, "x, y, z and label must be single values per point, label an integer")
-    keep = finite_mask(cloud)
-    points = np.stack([cloud["x"][keep], cloud["y"][keep], cloud["z"][keep]], axis=1).astype(np.float32)
+    points, keep = finite_points(cloud)
     labels = cloud["label"][keep].astype(np.int64).astype(np.uint32)
     return points, labels, int(keep.size - np.count_nonzero(keep))
 
