@@ -37,7 +37,6 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -49,7 +48,7 @@ import rclpy  # noqa: E402
 from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 
-from lcpr_ros.harness import FramePublisher, OutputListener, synthetic_place  # noqa: E402
+from lcpr_ros.harness import FramePublisher, OutputListener, synthetic_place, wait_until  # noqa: E402
 
 FRAME_DT = 0.5  # s of header time between frames (2 Hz)
 T0 = 1_700_000_000.0
@@ -80,15 +79,6 @@ def start_node(args: argparse.Namespace, domain: int, prefix: str, log: Path) ->
     out = log.open("wb")
     return subprocess.Popen([sys.executable, "-m", "lcpr_ros.node", "--ros-args", *ros_args], cwd=REPO, env=env,
                             stdout=out, stderr=subprocess.STDOUT)
-
-
-def wait_for(condition: Callable[[], bool], timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.02)
-    return True
 
 
 def processed(listener: OutputListener) -> int:
@@ -139,7 +129,7 @@ def main() -> int:
     spinner.start()
     results: dict[str, object] = {}
     try:
-        if not wait_for(lambda: "[lcpr]: ready" in log.read_text(errors="replace") or node_proc.poll() is not None,
+        if not wait_until(lambda: "[lcpr]: ready" in log.read_text(errors="replace") or node_proc.poll() is not None,
                         120) or node_proc.poll() is not None:
             print(log.read_text(errors="replace"), file=sys.stderr)
             return 1
@@ -149,7 +139,7 @@ def main() -> int:
         listener = OutputListener(driver)
         pub.wait_for_subscribers(30)
         listener.wait_for_publishers(30)
-        wait_for(lambda: bool(listener.latest_values("detector")), 10)
+        wait_until(lambda: bool(listener.latest_values("detector")), 10)
         places = [synthetic_place(i, size=tuple(args.camera_size)) for i in range(args.places)]
         sent: dict[int, float] = {}
         warm = min(60, args.frames // 4)
@@ -164,7 +154,7 @@ def main() -> int:
             sent[stamp_ms] = time.monotonic()
             pub.publish(places[i % args.places], stamp_ms / 1000)
             if args.rate == 0:
-                wait_for(lambda: processed(listener) >= i + 1, 30)
+                wait_until(lambda: processed(listener) >= i + 1, 30)
             if i + 1 in (warm, args.frames // 2):
                 rss["warm" if i + 1 == warm else "middle"] = rss_mb(node_proc.pid)
                 snapshots["warm" if i + 1 == warm else "middle"] = listener.latest_values("inputs")
@@ -172,7 +162,7 @@ def main() -> int:
                 print(f"  {i + 1}/{args.frames} frames, {len(listener.out.candidates)} replies, "
                       f"RSS {rss_mb(node_proc.pid):.0f} MB", file=sys.stderr)
         last = round((T0 + (args.frames - 1) * FRAME_DT) * 1000)
-        wait_for(lambda: any(round(rows[0]["query_stamp"] * 1000) == last for rows in listener.out.candidates), 30)
+        wait_until(lambda: any(round(rows[0]["query_stamp"] * 1000) == last for rows in listener.out.candidates), 30)
         time.sleep(2.5)  # one more diagnostics message with the final counts
         wall = time.monotonic() - start
         rss["end"] = rss_mb(node_proc.pid)

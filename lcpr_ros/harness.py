@@ -109,6 +109,16 @@ class FramePublisher:
         self.lidar.publish(self.cloud_msg(place, stamp))
 
 
+def wait_until(condition: Callable[[], bool], timeout: float = 60.0, *, period: float = 0.02) -> bool:
+    """Poll ``condition`` every ``period`` s: True once it holds, False after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(period)
+    return True
+
+
 @dataclass
 class Outputs:
     loops: list[tuple[float, float]] = field(default_factory=list)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import random
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,6 +36,7 @@ from lcpr_ros.harness import (
     pose_at_x,
     synthetic_place,
     truncated_cloud,
+    wait_until,
 )
 from lcpr_ros.node import CANDIDATE_QOS, LcprNode
 
@@ -57,15 +58,6 @@ def small_model(**extra: object) -> list[Parameter]:
         "diagnostics.period": 0.2, "sync.camera_timeout": 5.0, **extra,
     }
     return [Parameter(name, value=value) for name, value in values.items()]
-
-
-def wait_until(condition: Callable[[], bool], timeout: float = WAIT) -> bool:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.02)
-    return True
 
 
 @dataclass

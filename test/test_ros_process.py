@@ -9,7 +9,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,6 +30,7 @@ from lcpr_ros.harness import (
     image_with_unknown_encoding,
     synthetic_place,
     truncated_cloud,
+    wait_until,
 )
 
 REPO = Path(__file__).resolve().parents[1]
@@ -54,15 +55,6 @@ PARAMS = f"""lcpr:
     diagnostics:
       period: 0.2
 """
-
-
-def wait_until(condition: Callable[[], bool], timeout: float = WAIT) -> bool:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.05)
-    return True
 
 
 class NodeProcess:

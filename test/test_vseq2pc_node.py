@@ -17,14 +17,13 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
 import rclpy
-import torch
 from nav_msgs.msg import Odometry
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
@@ -37,7 +36,7 @@ from std_srvs.srv import Trigger
 from lcpr_core.pretrained import default_vseq2pc_weights
 from lcpr_core.vseq2pc.sequence import sequence_table
 from lcpr_ros.errors import ConfigError, MapLoadError
-from lcpr_ros.harness import OutputListener
+from lcpr_ros.harness import OutputListener, wait_until
 from msg_tools.camera_info import model_to_camera_info
 from msg_tools.image import array_to_image
 from msg_tools.pointcloud import array_to_pointcloud2
@@ -60,15 +59,6 @@ WAIT = 60.0
 QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
 PACE = 0.1  # s between published frames
 LABEL_CLOUD = np.dtype([("x", np.float32), ("y", np.float32), ("z", np.float32), ("label", np.uint32)])
-
-
-def wait_until(condition: Callable[[], bool], timeout: float = WAIT) -> bool:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.02)
-    return True
 
 
 @dataclass
