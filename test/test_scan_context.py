@@ -146,12 +146,9 @@ def test_a_database_is_ranked_per_query_with_padding_when_short() -> None:
     assert (np.diff(dist[:, :3], axis=1) >= 0).all()
 
 
-KITTI = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti00"
-
-
-@pytest.mark.skipif(not (KITTI / "000015.bin").is_file(), reason="../shared/data/kitti00 is not here")
-def test_real_kitti_scans_grow_apart_as_the_car_drives_on() -> None:
-    scans = {i: np.fromfile(KITTI / f"{i:06d}.bin", np.float32).reshape(-1, 4) for i in (0, 1, 5, 15)}
+def test_real_kitti_scans_grow_apart_as_the_car_drives_on(shared: Path) -> None:
+    kitti = shared / "data" / "kitti00"
+    scans = {i: np.fromfile(kitti / f"{i:06d}.bin", np.float32).reshape(-1, 4) for i in (0, 1, 5, 15)}
     sc = {i: scan_context(p) for i, p in scans.items()}
     d1, d5, d15 = (sc_distance(sc[i], sc[0])[0] for i in (1, 5, 15))
     assert d1 < d5 < d15
