@@ -29,11 +29,16 @@ setup(
         "tqdm>=4.60",
         "pyyaml>=6",
         "rosbags>=0.10",
+        "small_gicp>=1.0",  # registration for geometric verification
     ],
     extras_require={
         # ROS 2 from PyPI for machines without a ROS installation; a vehicle with
         # ROS 2 Jazzy from apt uses its system rclpy instead.
         "ros": ["ros-rclpy", "ros-common-interfaces", "ros-std-srvs", "ros-rmw-fastrtps-cpp"],
+        # The pose-graph proof in lcpr_eval and the demo (optional: verification itself does not need it).
+        "posegraph": ["gtsam>=4.2"],
+        # The registration comparison in benchmarks/registration_compare.py.
+        "compare": ["kiss-icp>=1.0"],
         "test": ["pytest>=7", "hypothesis>=6"],
     },
     zip_safe=True,

@@ -4,15 +4,16 @@ Pure Python and PyTorch: nothing here imports ROS.
 """
 from .checkpoint import init_from_imagenet, load_weights, read_state_dict, save_checkpoint
 from .describer import Describer, ModelConfig, build_model
-from .errors import CheckpointError, InputShapeError, LcprError, MapError, MapSchemaError
+from .errors import CheckpointError, InputShapeError, LcprError, MapError, MapSchemaError, VerificationError
 from .models import LCPR, DescriptorModel, LcprOutput, SequenceModel
 from .preprocess import PRESETS, LidarPreset, camera_tensor, cameras_tensor, range_image
 from .preprocess.structure import lidar_slices, structure_feature
+from .verification import GeometricVerifier, Verification, VerifierConfig
 
 __all__ = [
     "DescriptorModel", "SequenceModel", "lidar_slices", "structure_feature",
     "LCPR", "PRESETS", "CheckpointError", "Describer", "InputShapeError", "LcprError", "LcprOutput",
     "LidarPreset", "MapError", "MapSchemaError", "ModelConfig", "build_model", "camera_tensor",
     "cameras_tensor", "init_from_imagenet", "load_weights", "range_image", "read_state_dict",
-    "save_checkpoint",
+    "save_checkpoint", "GeometricVerifier", "Verification", "VerifierConfig", "VerificationError",
 ]

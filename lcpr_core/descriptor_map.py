@@ -23,15 +23,18 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .atomic import atomic_path
-from .errors import MapError, MapSchemaError
+from .errors import LcprError, MapError, MapSchemaError
 from .growable import GrowableArray
+from .verification.clouds import CloudStore
 
 __all__ = ["MapConfig", "Match", "DescriptorMap", "INDEX_TYPES", "SCHEMA_VERSION"]
 
 INDEX_TYPES: tuple[str, ...] = ("flat", "hnsw")
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: keyframe clouds (cloud_ids, cloud_counts, cloud_points); version 1 files still load
+_READABLE_VERSIONS = (1, 2)
 _FORMAT = "lcpr_core.descriptor_map"
 _NPZ_KEYS = ("header", "descriptors", "ids", "stamps", "poses", "source_codes")
+_CLOUD_KEYS = ("cloud_ids", "cloud_counts", "cloud_points")
 # A filtered search over at most this many allowed rows is done exactly (brute force).
 _EXACT_FALLBACK_ROWS = 16384
 
@@ -102,6 +105,7 @@ class DescriptorMap:
         self._next_id = 0
         self._ids_increasing = True  # ids strictly increasing in insertion order
         self._stamps_sorted = True  # stamps non-decreasing in insertion order
+        self.clouds = CloudStore()  # compact keyframe clouds for geometric verification, by id
 
     # ------------------------------------------------------------------ accessors
     @property
@@ -350,6 +354,7 @@ class DescriptorMap:
             **self.config.index_params(),
             "count": len(self),
             "sources": self._source_names,
+            "clouds": len(self.clouds),
         }
         arrays = {
             "header": np.array(json.dumps(header)),
@@ -358,6 +363,7 @@ class DescriptorMap:
             "stamps": self._stamps.view(),
             "poses": self._poses.view(),
             "source_codes": self._source_codes.view(),
+            **self.clouds.to_arrays(),
         }
         try:
             with atomic_path(path) as tmp, open(tmp, "wb") as fh:
@@ -397,6 +403,11 @@ class DescriptorMap:
         out._next_id = int(ids.max()) + 1 if len(ids) else 0
         out._ids_increasing = bool(np.all(np.diff(ids) > 0))
         out._stamps_sorted = bool(np.all(np.diff(stamps) >= 0))
+        if all(key in data for key in _CLOUD_KEYS):
+            try:
+                out.clouds = CloudStore.from_arrays(data, where=f"map file {where}")
+            except LcprError as err:
+                raise MapError(str(err)) from err
         return out
 
 
@@ -496,7 +507,10 @@ def _read_npz(where: str) -> dict[str, np.ndarray]:
             missing = [key for key in _NPZ_KEYS if key not in npz.files]
             if missing:
                 raise MapError(f"map file {where} lacks {', '.join(missing)}; expected arrays {', '.join(_NPZ_KEYS)}")
-            return {key: npz[key] for key in _NPZ_KEYS}
+            present = [key for key in _CLOUD_KEYS if key in npz.files]
+            if present and len(present) != len(_CLOUD_KEYS):
+                raise MapError(f"map file {where} holds {', '.join(present)} but not all of {', '.join(_CLOUD_KEYS)}")
+            return {key: npz[key] for key in (*_NPZ_KEYS, *present)}
     except MapError:
         raise
     except Exception as err:  # noqa: BLE001 - zipfile/numpy raise many kinds on damaged archives
@@ -511,8 +525,9 @@ def _parse_header(raw: np.ndarray, where: str) -> dict[str, Any]:
     if not isinstance(header, dict) or header.get("format") != _FORMAT:
         raise MapError(f"map file {where} is not a {_FORMAT} file")
     version = header.get("schema_version")
-    if version != SCHEMA_VERSION:
-        raise MapSchemaError(f"map file {where} has schema version {version!r}; this code reads version {SCHEMA_VERSION}")
+    if version not in _READABLE_VERSIONS:
+        raise MapSchemaError(f"map file {where} has schema version {version!r}; this code reads versions "
+                             f"{', '.join(map(str, _READABLE_VERSIONS))}")
     for key, kind in (("dim", int), ("model", str), ("index", str), ("count", int), ("sources", list)):
         if not isinstance(header.get(key), kind):
             raise MapError(f"map file {where} header field {key!r} is {header.get(key)!r}; expected a {kind.__name__}")

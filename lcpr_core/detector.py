@@ -14,10 +14,19 @@ metres of travel. Matching: the ``match.top_k`` nearest map entries within
 than ``match.exclude_recent_s`` seconds or among the last
 ``match.exclude_recent_count``. Entries of a map loaded from an earlier session
 are never excluded by time (their stamps belong to another clock run).
+
+Verification (``verify.enabled``, on by default): every keyframe keeps a compact copy
+of its cloud in the map; each candidate is registered against the query's cloud
+(:class:`~lcpr_core.verification.GeometricVerifier`) and gets ``verified``,
+``fitness``, ``match_T_query`` and ``covariance``. ``Result.loop`` is then the
+verified candidate with the best fitness (None when none passed), not the nearest
+descriptor. With verification off, ``Result.loop`` is the nearest candidate, as before.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -26,6 +35,9 @@ import numpy as np
 from .describer import Describer, ModelConfig
 from .descriptor_map import DescriptorMap, MapConfig, Match
 from .preprocess.camera import CameraInput
+from .verification import GeometricVerifier, PreparedCloud, Verification, VerifierConfig
+
+PREPARED_CACHE = 64  # prepared map clouds kept for the next queries (consecutive queries share candidates)
 
 
 def _non_negative(obj: object, *names: str) -> None:
@@ -46,7 +58,7 @@ class KeyframeConfig:
 
 @dataclass(frozen=True)
 class MatchConfig:
-    top_k: int = 5  # candidates per query
+    top_k: int = 10  # candidates per query (all of them are verified)
     max_distance: float = 1.0  # descriptor L2 distance (unit vectors: 0..2) a candidate must be under
     exclude_recent_s: float = 30.0  # this session's keyframes newer than this are not matched
     exclude_recent_count: int = 0  # and neither are the last N keyframes (0 = off)
@@ -69,6 +81,7 @@ class DetectorConfig:
     match: MatchConfig = field(default_factory=MatchConfig)
     sensors: SensorConfig = field(default_factory=SensorConfig)
     map: MapConfig = field(default_factory=MapConfig)
+    verify: VerifierConfig = field(default_factory=VerifierConfig)
     session: str = "session"  # source name stored with this run's keyframes
 
 
@@ -92,6 +105,11 @@ class Candidate:
     rank: int  # 0 = best
     match_position: tuple[float, float, float] | None
     degraded: bool  # the query had a missing camera
+    verified: bool = False  # the LiDAR registration accepted this candidate
+    fitness: float = 0.0  # overlap of the registered clouds, 0..1
+    match_T_query: np.ndarray | None = None  # 4 x 4: query LiDAR frame in the match's (None: not registered)
+    covariance: np.ndarray | None = None  # 6 x 6 (x, y, z, roll, pitch, yaw) of match_T_query
+    verification: str = "off"  # "accepted", why not (see verification.REJECT_REASONS), "no cloud" or "off"
 
 
 @dataclass
@@ -102,11 +120,19 @@ class Result:
     candidates: list[Candidate] = field(default_factory=list)
     missing_cameras: tuple[int, ...] = ()
     timings: dict[str, float] = field(default_factory=dict)  # stage -> seconds
+    verification: bool = True  # candidates were verified (the loop must be a verified one)
 
     @property
     def loop(self) -> Candidate | None:
-        """The best candidate, the one a SLAM back end should receive."""
-        return self.candidates[0] if self.candidates else None
+        """The candidate a SLAM back end should receive.
+
+        Verification on: the verified candidate with the best fitness (ties: the nearer
+        descriptor), None when none passed. Off: the nearest descriptor.
+        """
+        if not self.verification:
+            return self.candidates[0] if self.candidates else None
+        verified = [c for c in self.candidates if c.verified]
+        return max(verified, key=lambda c: (c.fitness, -c.distance)) if verified else None
 
 
 REASONS = ("keyframe", "too soon", "not moved", "no lidar", "out of order")
@@ -129,6 +155,9 @@ class LoopDetector:
         self._session_stamps: list[float] = []
         self._last_stamp = -np.inf
         self._last_position: np.ndarray | None = None
+        self.verifier = GeometricVerifier(config.verify)
+        self._prepared: OrderedDict[int, PreparedCloud] = OrderedDict()
+        self.last_error: str | None = None  # the latest verification failure (counted as "failed")
 
     @property
     def session_keyframes(self) -> int:
@@ -160,16 +189,65 @@ class LoopDetector:
         position = None if frame.pose is None else np.asarray(frame.pose, np.float64)[:3, 3]
         (new_id,) = self.map.add(desc, stamps=frame.stamp, poses=None if position is None else position[None],
                                  sources=self.config.session)
-        result.timings["add"] = time.perf_counter() - tic
         result.keyframe_id = int(new_id)
         result.candidates = [
             Candidate(int(new_id), h.id, frame.stamp, h.stamp, h.distance, rank, h.pose, bool(missing))
             for rank, h in enumerate(hits)
         ]
+        result.timings["add"] = time.perf_counter() - tic
+
+        result.verification = self.config.verify.enabled
+        if self.verifier.config is not self.config.verify:  # settings changed at run time
+            self.verifier = GeometricVerifier(self.config.verify)
+            self._prepared.clear()
+        if self.config.verify.enabled:
+            tic = time.perf_counter()
+            compact = self.verifier.compact(points) if len(points) else np.zeros((0, 3), np.float32)
+            self.map.clouds.add(int(new_id), compact)
+            result.timings["compact"] = time.perf_counter() - tic
+            tic = time.perf_counter()
+            result.candidates = self._verify(compact, result.candidates)
+            result.timings["verify"] = time.perf_counter() - tic
         self._session_stamps.append(frame.stamp)
         if position is not None:
             self._last_position = position
         return result
+
+    def _verify(self, compact: np.ndarray, candidates: list[Candidate]) -> list[Candidate]:
+        """Each candidate with the verdict of registering the query cloud against the match's."""
+        if not candidates:
+            return candidates
+        query = self.verifier.prepare(compact)
+        out = []
+        for c in candidates:
+            match = self._prepared_cloud(c.match_id)
+            if match is None:
+                out.append(dataclasses.replace(c, verification="no cloud"))
+                continue
+            try:
+                v = self.verifier.verify_prepared(query, match)
+            except Exception as err:  # noqa: BLE001 - a bad pair must not cost the keyframe
+                v = Verification(False, "failed", np.eye(4), 0.0)
+                self.last_error = f"verification of {c.query_id} against {c.match_id}: {type(err).__name__}: {err}"
+            out.append(dataclasses.replace(c, verified=v.accepted, fitness=v.fitness,
+                                           match_T_query=v.match_T_query, covariance=v.covariance,
+                                           verification=v.reason))
+        return out
+
+    def _prepared_cloud(self, keyframe_id: int) -> PreparedCloud | None:
+        """The match keyframe's prepared cloud, from a small LRU cache."""
+        cached = self._prepared.get(keyframe_id)
+        if cached is not None:
+            self._prepared.move_to_end(keyframe_id)
+            return cached
+        xyz = self.map.clouds.get(keyframe_id)
+        if xyz is None:
+            return None
+        prepared = self.verifier.prepare(xyz)
+        self._prepared[keyframe_id] = prepared
+        if len(self._prepared) > PREPARED_CACHE:
+            self._prepared.popitem(last=False)
+        return prepared
 
     def _keyframe_reason(self, frame: Frame) -> str:
         if frame.stamp <= self._last_stamp:

@@ -19,3 +19,11 @@ class MapError(LcprError):
 
 class MapSchemaError(MapError):
     """A saved descriptor map does not match the map it is loaded into (dimension, model)."""
+
+
+class PoseGraphError(LcprError):
+    """A trajectory, loop constraint or option handed to the pose-graph back end cannot be used."""
+
+
+class VerificationError(LcprError, ValueError):
+    """Geometric verification was given clouds, transforms or settings it cannot use."""

@@ -28,7 +28,9 @@ class Health:
     model: list[float] | None = None  # p50, p90, p99 s: preprocessing + network
     map_size: int = 0
     session_keyframes: int = 0
-    loops: int = 0  # queries with at least one candidate
+    loops: int = 0  # loops published on ~/loop_closure
+    verification: dict[str, int] = field(default_factory=dict)  # verdict ("accepted", reasons) -> candidates
+    verify_time: list[float] | None = None  # p50, p90, p99 s: verification of one keyframe's candidates
     sync_pending: int = 0
     worker_waiting: int = 0
     worker_busy: bool = False
@@ -84,6 +86,10 @@ class DiagnosticsBuilder:
             _kv("loops", h.loops),
             *[_kv(f"latency {p} (ms)", v) for p, v in zip(("p50", "p90", "p99"), lat)],
             *[_kv(f"model {p} (ms)", v) for p, v in zip(("p50", "p90", "p99"), model)],
+            *[_kv(f"verify {p} (ms)", v) for p, v in zip(("p50", "p90", "p99"), _ms(h.verify_time))],
+            _kv("candidates verified", h.verification.get("accepted", 0)),
+            _kv("candidates rejected", sum(n for k, n in h.verification.items() if k != "accepted")),
+            *[_kv(f"rejected {reason}", n) for reason, n in sorted(h.verification.items()) if reason != "accepted"],
             _kv("sync pending", h.sync_pending),
             _kv("worker waiting", h.worker_waiting),
             _kv("worker busy", int(h.worker_busy)),

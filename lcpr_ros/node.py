@@ -70,6 +70,8 @@ class LcprNode(Node):
         self.rates = RateMeter()
         self.latency = Window(node_cfg.diagnostics.window)
         self.model_time = Window(node_cfg.diagnostics.window)
+        self.verify_time = Window(node_cfg.diagnostics.window)
+        self.verdicts = Counts()
         self.loops = 0
         self._closed = False
 
@@ -211,13 +213,19 @@ class LcprNode(Node):
         self.decisions.add(result.reason)
         if result.keyframe_id is None:
             return
+        for candidate in result.candidates:
+            if candidate.verification != "off":
+                self.verdicts.add(candidate.verification)
         if result.candidates:
             self._candidates_pub.publish(candidates_msg(result))
-            self._loop_pub.publish(loop_closure_msg(result))
             self.markers.publish(result, synced.pose, self.poses.frame_id, max_distance)
+        if result.loop is not None:
+            self._loop_pub.publish(loop_closure_msg(result))
             self.loops += 1
         self.latency.add(time.monotonic() - synced.arrival)
         self.model_time.add(result.timings.get("preprocess", 0.0) + result.timings.get("network", 0.0))
+        if "verify" in result.timings:
+            self.verify_time.add(result.timings["verify"])
 
     def _on_replaced(self, frame: SyncedFrame) -> None:
         self.drops.add(BUSY)
@@ -257,6 +265,7 @@ class LcprNode(Node):
             missing={topics[k]: n for k, n in enumerate(self.sync.missing)}, warnings=self.warnings.causes,
             latency=self.latency.percentiles(50, 90, 99), model=self.model_time.percentiles(50, 90, 99),
             map_size=len(self.detector.map), session_keyframes=self.detector.session_keyframes, loops=self.loops,
+            verification=self.verdicts.snapshot(), verify_time=self.verify_time.percentiles(50, 90, 99),
             sync_pending=self.sync.pending, worker_waiting=self.worker.waiting, worker_busy=self.worker.busy,
         )
 

@@ -1,26 +1,43 @@
 """Loop candidates -> std_msgs/Float64MultiArray, in the layouts other programs rely on.
 
-``~/loop_closure``: data = [query_stamp_s, match_stamp_s] of the best candidate (the
-input LIO-SAM's ``lio_loop/loop_closure_detection`` expects). ``~/candidates``: one
-row per candidate; ``layout.dim[0]`` = ("candidates", rows, rows * cols),
-``layout.dim[1]`` = (comma-separated column names, cols, cols).
+``~/loop_closure``: data = [query_stamp_s, match_stamp_s] of the result's loop (the
+verified candidate with the best fitness; with ``verify.enabled`` false, the nearest
+descriptor), the input LIO-SAM's ``lio_loop/loop_closure_detection`` expects.
+``~/candidates``: one row per candidate, verified or not; ``layout.dim[0]`` =
+("candidates", rows, rows * cols), ``layout.dim[1]`` = (comma-separated column names,
+cols, cols). ``tx..qw`` is match_T_query (the query keyframe's LiDAR frame in the match
+keyframe's LiDAR frame), ``cov_0..cov_35`` its 6 x 6 covariance row-major over
+(x, y, z, roll, pitch, yaw) as in geometry_msgs/PoseWithCovariance; NaN where the
+candidate was not registered.
 """
 from __future__ import annotations
 
+import math
 from typing import Any
 
+import numpy as np
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, MultiArrayLayout
 
 from lcpr_core.detector import Candidate, Result
+from msg_tools.geometry import matrix_to_quaternion
 
+POSE_COLUMNS: tuple[str, ...] = ("tx", "ty", "tz", "qx", "qy", "qz", "qw")
+COVARIANCE_COLUMNS: tuple[str, ...] = tuple(f"cov_{i}" for i in range(36))
 CANDIDATE_COLUMNS: tuple[str, ...] = (
     "query_stamp", "match_stamp", "query_id", "match_id", "distance", "rank", "degraded",
+    "verified", "fitness", *POSE_COLUMNS, *COVARIANCE_COLUMNS,
 )
 
 
 def _row(c: Candidate) -> list[float]:
+    if c.match_T_query is None:
+        pose = [math.nan] * len(POSE_COLUMNS)
+    else:
+        T = np.asarray(c.match_T_query, np.float64)
+        pose = [*T[:3, 3].tolist(), *matrix_to_quaternion(T[:3, :3]).tolist()]
+    cov = [math.nan] * 36 if c.covariance is None else np.asarray(c.covariance, np.float64).reshape(36).tolist()
     return [c.query_stamp, c.match_stamp, float(c.query_id), float(c.match_id), c.distance, float(c.rank),
-            float(c.degraded)]
+            float(c.degraded), float(c.verified), float(c.fitness), *pose, *cov]
 
 
 def loop_closure_msg(result: Result) -> Float64MultiArray | None:

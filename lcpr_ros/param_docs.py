@@ -29,6 +29,19 @@ class ParamDoc:
 
 
 DOCS: dict[str, ParamDoc] = {
+    # ---- verification (geometric check of every candidate against the LiDAR)
+    "verify.enabled": ParamDoc("register each candidate's cloud against the query's and publish verified loops "
+                               "only; false = publish the nearest descriptor unchecked (the old behaviour)",
+                               dynamic=True),
+    "verify.min_fitness": ParamDoc("overlap (0..1) a registration needs to be accepted", 0.0, 1.0, dynamic=True),
+    "verify.min_constraint": ParamDoc("smallest per-inlier Hessian eigenvalue (rejects planes, corridors, "
+                                      "sphere shells)", 0.0, INF, dynamic=True),
+    "verify.registration": ParamDoc("small_gicp registration", choices=("GICP", "PLANE_ICP", "VGICP"),
+                                    dynamic=True),
+    "verify.num_threads": ParamDoc("registration threads", 1, 64, dynamic=True),
+    "verify.cloud.voxel": ParamDoc("m, voxel size of the compact keyframe cloud kept in the map", 0.05, 5.0),
+    "verify.cloud.max_points": ParamDoc("points kept per keyframe cloud (6 bytes each)", 100, 1_000_000),
+
     # ---- model (read-only: the network is built once)
     "model.weights": ParamDoc("released LCPR checkpoint or state dict; empty = seeded random weights (testing only)"),
     "model.imagenet": ParamDoc("torchvision resnet18 state dict for the ResNet blocks, used when model.weights "

@@ -9,11 +9,11 @@ PYTHON=${PYTHON:-python3}
 if "$PYTHON" -c "import rclpy" 2>/dev/null; then
   echo "setup: using the system ROS 2 (rclpy found); .venv sees system site-packages"
   venv_flags=(--system-site-packages)
-  extras="test"
+  extras="test,posegraph"
 else
   echo "setup: no system ROS 2 found; installing the ROS 2 wheels from PyPI into .venv"
   venv_flags=()
-  extras="ros,test"
+  extras="ros,test,posegraph"
 fi
 
 # Debian's colcon, for the test that builds the package as ament_python (root + apt only).

@@ -7,6 +7,9 @@ import torch
 
 from lcpr_core.descriptor_map import DescriptorMap
 from lcpr_core.detector import DetectorConfig, Frame, KeyframeConfig, LoopDetector, MatchConfig, SensorConfig
+from lcpr_core.verification import VerifierConfig
+
+RETRIEVAL_ONLY = VerifierConfig(enabled=False)  # these tests are about keyframing and retrieval
 
 
 class PlaceDescriber:
@@ -30,7 +33,7 @@ def frame(t: float, x: float, y: float = 0.0, *, cams=6, pose=True, missing=()) 
 
 
 def detector(**match) -> LoopDetector:
-    config = DetectorConfig(match=MatchConfig(**{"max_distance": 0.5, **match}))
+    config = DetectorConfig(match=MatchConfig(**{"max_distance": 0.5, **match}), verify=RETRIEVAL_ONLY)
     return LoopDetector(config, describer=PlaceDescriber())
 
 
@@ -101,7 +104,7 @@ def test_entries_of_a_prior_session_are_never_excluded_by_time():
     prior_det = detector()
     for t in range(5):
         prior_det.process(frame(1000.0 + t, float(t)))
-    det = LoopDetector(DetectorConfig(match=MatchConfig(max_distance=0.5)), describer=PlaceDescriber(),
+    det = LoopDetector(DetectorConfig(match=MatchConfig(max_distance=0.5), verify=RETRIEVAL_ONLY), describer=PlaceDescriber(),
                        prior_map=prior_det.map)
     r = det.process(frame(0.0, 3.0))  # earlier clock, same place as prior keyframe 3
     assert r.loop is not None and r.loop.match_id == 3

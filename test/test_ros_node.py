@@ -299,3 +299,16 @@ def test_invalid_parameters_or_an_unusable_map_file_refuse_to_build_the_node(ros
         LcprNode(context=ros.context, namespace="/bad4",
                  parameter_overrides=small_model(**{"map.path": str(other), "map.dim": 512}))
     assert np.array_equal(DescriptorMap.load(other).ids, DescriptorMap.load(ros.map_path).ids)
+
+
+def test_a_verified_loop_carries_its_relative_pose_and_covariance_on_candidates(ros: Ros) -> None:
+    """Runs last: its stamps are later than every other test's."""
+    ros.feed(ros.places[2], T0 + 10_000.0, x=500.0)
+    ros.feed(ros.places[2], T0 + 10_040.0, x=500.2)
+    assert ros.listener.wait(lambda o: o.loops and o.loops[-1][0] == pytest.approx(T0 + 10_040.0), 10)
+    rows = [r for r in ros.listener.out.candidates[-1] if r["match_stamp"] == ros.listener.out.loops[-1][1]]
+    assert rows and rows[0]["verified"] == 1.0 and 0.5 < rows[0]["fitness"] <= 1.0
+    assert abs(rows[0]["tx"]) < 0.05 and abs(rows[0]["ty"]) < 0.05 and rows[0]["qw"] == pytest.approx(1.0, abs=1e-3)
+    cov = np.array([rows[0][f"cov_{i}"] for i in range(36)]).reshape(6, 6)
+    assert np.allclose(cov, cov.T) and (np.linalg.eigvalsh(cov) > 0).all()
+    assert int(ros.listener.latest_values("detector")["candidates verified"]) >= 1

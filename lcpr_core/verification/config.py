@@ -1,0 +1,113 @@
+"""Typed settings of the geometric verification stage (one source for the node, lcpr_eval and the demo)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from ..errors import VerificationError
+
+REGISTRATIONS: tuple[str, ...] = ("GICP", "PLANE_ICP", "VGICP")
+
+
+@dataclass(frozen=True)
+class CloudConfig:
+    """How a keyframe's cloud is kept: voxel-downsampled, capped, quantised to int16 centimetres.
+
+    Bytes per keyframe: 6 * (points kept) <= 6 * max_points (24 KiB at the default 4096),
+    plus 8 bytes of offset. Points farther than ``max_range`` (horizontally and in z)
+    or nearer than ``min_range`` are left out.
+    """
+
+    voxel: float = 0.4  # m, voxel-grid downsampling (centroid per voxel)
+    max_points: int = 4096  # cap per keyframe after voxelisation (evenly spaced subset)
+    min_range: float = 1.0  # m: drops the ego vehicle / operator
+    max_range: float = 80.0  # m (<= 327 m: int16 centimetres)
+
+    def __post_init__(self) -> None:
+        _positive(self, "voxel", "max_points", "max_range")
+        if not 0.0 <= self.min_range < self.max_range:
+            raise VerificationError(f"cloud min_range={self.min_range!r}, max_range={self.max_range!r}; "
+                                    "accepted: 0 <= min_range < max_range")
+        if self.max_range > 327.0:
+            raise VerificationError(f"cloud max_range={self.max_range!r} m; accepted: <= 327 (int16 centimetres)")
+
+
+@dataclass(frozen=True)
+class VerifierConfig:
+    """Registration and acceptance of one query/candidate pair.
+
+    Pipeline: initial yaw hypotheses from the Scan Context column shift
+    (``yaw_hypotheses`` best shifts), each completed with an x/y offset from a
+    bird's-eye-view cross-correlation (``bev_cell``); the best
+    ``registrations`` hypotheses are registered coarse-to-fine with small_gicp
+    (GICP by default); the result is accepted when all of:
+
+    - the overlap (share of each cloud's points whose nearest neighbour in the other
+      cloud is within ``inlier_distance`` and that lie within ``plane_distance`` of that
+      neighbour's local plane; the smaller of the two shares) is at least ``min_fitness``;
+    - the inlier RMSE is at most ``max_rmse``;
+    - the fine stage moved the pose at most ``max_correction_m`` / ``max_correction_deg``
+      away from its initial guess (a registration that runs away converged on something else);
+    - the registration is well constrained: the smallest eigenvalue of the GICP Hessian
+      (translation and rotation blocks, per inlier) is at least ``min_constraint``;
+    - no other hypothesis reaches nearly the same overlap (within ``ambiguity_margin``)
+      at a pose more than ``ambiguity_m`` away (repetitive structure).
+
+    Thresholds default to values chosen on validation drives (see benchmarks/verify_tune.py),
+    never on the drives the README reports as held out.
+    """
+
+    enabled: bool = True
+    cloud: CloudConfig = field(default_factory=CloudConfig)
+    registration: str = "GICP"
+    num_threads: int = 2
+    min_points: int = 200  # fewer points (after downsampling) in either cloud: not verifiable
+    # initial guess
+    yaw_hypotheses: int = 4  # Scan Context shifts tried
+    bev_cell: float = 1.0  # m, bird's-eye-view cell of the x/y cross-correlation
+    bev_extent: float = 64.0  # m, half width of the bird's-eye view
+    registrations: int = 2  # hypotheses registered in full
+    # registration
+    coarse_distance: float = 3.0  # m, max correspondence distance of the coarse stage
+    fine_distance: float = 1.0  # m, of the fine stage
+    max_iterations: int = 30
+    # acceptance
+    inlier_distance: float = 0.6  # m, nearest-neighbour reach of an inlier
+    plane_distance: float = 0.1  # m, its distance to the neighbour's local plane
+    min_fitness: float = 0.42  # benchmarks/verify_tune.py: <= 0.1 % of validation false pairs pass
+    max_rmse: float = 0.2  # m
+    max_correction_m: float = 8.0  # sanity bounds: the initial guess is within ~1 m and a few degrees
+    max_correction_deg: float = 30.0
+    min_constraint: float = 0.5  # per-inlier Hessian eigenvalue: a plane, a line or a sphere shell is below
+    ambiguity_margin: float = 0.0
+    ambiguity_m: float = 2.0
+    # covariance: inv(Hessian) * residual variance factor * inflation, floored per axis
+    covariance_inflation: float = 10.0
+    min_sigma_m: float = 0.02
+    min_sigma_deg: float = 0.2
+
+    def __post_init__(self) -> None:
+        if self.registration not in REGISTRATIONS:
+            raise VerificationError(f"verify.registration={self.registration!r}; accepted: {', '.join(REGISTRATIONS)}")
+        _positive(self, "num_threads", "min_points", "yaw_hypotheses", "bev_cell", "bev_extent", "registrations",
+                  "coarse_distance", "fine_distance", "max_iterations", "inlier_distance", "plane_distance", "max_rmse",
+                  "max_correction_m", "max_correction_deg", "ambiguity_m", "covariance_inflation")
+        _non_negative(self, "min_constraint", "ambiguity_margin", "min_sigma_m", "min_sigma_deg")
+        if not 0.0 <= self.min_fitness <= 1.0:
+            raise VerificationError(f"verify.min_fitness={self.min_fitness!r}; accepted: 0 <= min_fitness <= 1")
+        if self.bev_extent / self.bev_cell > 1024:
+            raise VerificationError(f"verify.bev_extent / verify.bev_cell = {self.bev_extent / self.bev_cell:.0f} "
+                                    "cells; accepted: at most 1024 (a larger view is slower, not better)")
+
+
+def _positive(obj: object, *names: str) -> None:
+    for name in names:
+        value = getattr(obj, name)
+        if isinstance(value, bool) or not value > 0:
+            raise VerificationError(f"verify.{name}={value!r}; it must be > 0")
+
+
+def _non_negative(obj: object, *names: str) -> None:
+    for name in names:
+        value = getattr(obj, name)
+        if isinstance(value, bool) or not value >= 0:
+            raise VerificationError(f"verify.{name}={value!r}; it must be >= 0")

@@ -1,0 +1,114 @@
+"""Initial guesses for registration: LCPR is yaw-invariant and says nothing about the relative pose.
+
+1. yaw: the Scan Context column shifts that best align the two clouds (a turn of the
+   sensor rolls the polar grid's columns), the ``count`` best local minima;
+2. x/y: for each yaw, the peak of the cross-correlation of two bird's-eye views whose
+   cells hold the height span of the points in them (walls, poles and trees count;
+   flat ground, whose rings follow the sensor, does not).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..scan_context import ScanContextConfig, _all_shifts, scan_context
+
+SC_CONFIG = ScanContextConfig(num_rings=20, num_sectors=72, max_range=80.0, lidar_height=3.0)
+
+
+@dataclass(frozen=True)
+class Hypothesis:
+    """match_T_query guess: yaw (rad) about z, then x/y (m); ``score`` in [0, 1] (BEV correlation)."""
+
+    yaw: float
+    x: float
+    y: float
+    score: float
+
+    def matrix(self) -> np.ndarray:
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        T = np.eye(4)
+        T[:2, :2] = [[c, -s], [s, c]]
+        T[:2, 3] = (self.x, self.y)
+        return T
+
+
+def polar_context(xyz: np.ndarray) -> np.ndarray:
+    """rings x sectors max-height grid of a cloud (the Scan Context used for yaw)."""
+    return scan_context(xyz, config=SC_CONFIG)
+
+
+def yaw_candidates(query_sc: np.ndarray, match_sc: np.ndarray, count: int) -> list[float]:
+    """The ``count`` yaws (rad, match_T_query) whose column shifts align the contexts best.
+
+    A query sensor turned by +psi relative to the match sees the match's columns
+    rolled by -psi: ``np.roll(match_sc, s)`` aligns with ``query_sc`` at s = -psi / sector.
+    """
+    dist = _all_shifts(query_sc, match_sc)  # (sectors,)
+    sectors = len(dist)
+    left, right = np.roll(dist, 1), np.roll(dist, -1)
+    minima = np.flatnonzero((dist <= left) & (dist <= right))
+    order = minima[np.argsort(dist[minima], kind="stable")]
+    if len(order) < count:  # flat distance profile: fill with the plain best shifts
+        rest = [s for s in np.argsort(dist, kind="stable") if s not in set(order.tolist())]
+        order = np.concatenate([order, rest]).astype(np.int64)
+    step = 2.0 * math.pi / sectors
+    return [_wrap(-float(s) * step) for s in order[:count]]
+
+
+def bev_image(xyz: np.ndarray, *, cell: float, extent: float) -> np.ndarray:
+    """G x G float32 height span (max z - min z) per cell, G = 2 * extent / cell, sensor at the centre."""
+    size = int(round(2.0 * extent / cell))
+    ij = np.floor((xyz[:, :2] + extent) / cell).astype(np.int64)
+    inside = ((ij >= 0) & (ij < size)).all(axis=1)
+    ij, z = ij[inside], xyz[inside, 2].astype(np.float64)
+    flat = ij[:, 0] * size + ij[:, 1]
+    top = np.full(size * size, -np.inf)
+    low = np.full(size * size, np.inf)
+    np.maximum.at(top, flat, z)
+    np.minimum.at(low, flat, z)
+    span = np.where(np.isfinite(top), top - low, 0.0)
+    return np.minimum(span, 3.0).reshape(size, size).astype(np.float32)
+
+
+def rotate_z(xyz: np.ndarray, yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    out = np.asarray(xyz, np.float64).copy()
+    out[:, 0] = c * xyz[:, 0] - s * xyz[:, 1]
+    out[:, 1] = s * xyz[:, 0] + c * xyz[:, 1]
+    return out
+
+
+class BevMatcher:
+    """x/y offset of a rotated query view against one match view by FFT cross-correlation."""
+
+    def __init__(self, match_xyz: np.ndarray, *, cell: float, extent: float, max_offset: float) -> None:
+        self.cell, self.extent = cell, extent
+        image = bev_image(match_xyz, cell=cell, extent=extent)
+        self.size = image.shape[0]
+        self._pad = 2 * self.size  # zero padding: no wrap-around
+        self._norm = float(np.linalg.norm(image))
+        self._spectrum = np.fft.rfft2(image, s=(self._pad, self._pad))
+        reach = int(math.ceil(max_offset / cell))
+        offsets = np.fft.fftfreq(self._pad, d=1.0 / self._pad).astype(np.int64)  # FFT index -> signed shift
+        self._offsets = offsets
+        self._window = np.abs(offsets) <= reach
+
+    def locate(self, query_xyz: np.ndarray, yaw: float) -> Hypothesis:
+        """Best x/y for ``yaw``: where match(x) ~ rotated query(x - t)."""
+        image = bev_image(rotate_z(query_xyz, yaw), cell=self.cell, extent=self.extent)
+        norm = float(np.linalg.norm(image)) * self._norm
+        if norm <= 0.0:
+            return Hypothesis(yaw, 0.0, 0.0, 0.0)
+        corr = np.fft.irfft2(self._spectrum * np.conj(np.fft.rfft2(image, s=(self._pad, self._pad))),
+                             s=(self._pad, self._pad))
+        corr = np.where(self._window[:, None] & self._window[None, :], corr, -np.inf)
+        i, j = np.unravel_index(int(np.argmax(corr)), corr.shape)
+        di, dj = int(self._offsets[i]), int(self._offsets[j])
+        return Hypothesis(yaw, di * self.cell, dj * self.cell, float(max(corr[i, j], 0.0) / norm))
+
+
+def _wrap(angle: float) -> float:
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
