@@ -24,6 +24,14 @@ within ``radius`` (others are removed, as in the paper). Every query-database pa
 is thus at least ``exclude_recent_s`` apart, so no query is matched by its temporal
 neighbours. Descriptors compared by L2 go through :mod:`lcpr_core.metrics`; other
 distances (Scan Context) through a ranked retrieval the caller provides.
+
+Verified loops ("LCPR + verification", :func:`evaluate_verified`): with geometric
+verification on, each keyframe's loop is the verified candidate with the best
+registration fitness (``Result.loop``), or none. They are scored by the rule of
+:mod:`lcpr_core.loop_report` (the one the demo uses): precision over the loops,
+recall over the keyframes with a true loop, relative-pose error against the ground
+truth; the precision-recall sweep (max F1, recall at precision 1) uses the fitness
+of each keyframe's loop as its score (higher accepts first).
 """
 from __future__ import annotations
 
@@ -41,13 +49,14 @@ from msg_tools.ground_truth import revisit_pairs
 
 from .atomic import atomic_path
 from .errors import InputShapeError
+from .loop_report import LoopScore, PoseGraphProof, PublishedLoop, loop_correct, loop_pose_errors, score_loops
 from .metrics import PRResult, pr_sweep, precision_recall, recall_at_n
 
 __all__ = [
     "GroundTruth", "LatencyStats", "MethodResult", "MethodRun", "OperatingPoint", "ProtocolResult",
     "EvaluationReport", "database_query_protocol", "evaluate_method", "ground_truth", "latency_stats",
     "online_protocol", "plot_latency", "plot_pr_curves", "plot_trajectory", "pr_sweep", "ranked_protocol",
-    "recall_at_full_precision", "summary_table",
+    "recall_at_full_precision", "summary_table", "VerifiedLoops", "evaluate_verified", "verification_table",
 ]
 
 #: (query_rows, database_rows, k) -> (ids, distances), both (Q, k): ranked database rows
@@ -460,6 +469,136 @@ def evaluate_method(
                         latency=latency_stats(run.timings, warmup=warmup), timings=list(run.timings))
 
 
+# ============================================================================ verified loops
+@dataclass(frozen=True)
+class VerifiedLoops:
+    """"LCPR + verification": each keyframe's verified loop, scored like a published loop.
+
+    ``pr`` sweeps the loops' fitness (a loop is accepted when its fitness is at least
+    the threshold); its ``thresholds`` are the negated fitness values (pr_sweep accepts
+    at or below a threshold), :attr:`max_f1_min_fitness` gives the fitness itself.
+    """
+
+    name: str
+    score: LoopScore  # lcpr_core.loop_report.score_loops of all loops
+    pr: PRResult | None  # None: no loop or no positive keyframe
+    loops: tuple[PublishedLoop, ...] = field(default=(), repr=False)  # keyframe rows, one loop per query at most
+    fitness: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)  # (L,)
+    correct: np.ndarray = field(default_factory=lambda: np.zeros(0, bool), repr=False)  # (L,)
+    pose_errors: tuple[tuple[float, float] | None, ...] = field(default=(), repr=False)  # (m, deg) or None
+    pose_graph: PoseGraphProof | None = None  # the loops in a pose graph over drifted odometry
+    pose_graph_note: str = ""  # why there is no pose graph
+    base_T_lidar: np.ndarray | None = None  # the extrinsic the ground truth LiDAR poses used
+    base_T_lidar_source: str = ""  # where it came from
+
+    @property
+    def max_f1(self) -> float | None:
+        return None if self.pr is None else self.pr.max_f1
+
+    @property
+    def max_f1_min_fitness(self) -> float | None:
+        return None if self.pr is None else -self.pr.max_f1_threshold
+
+    @property
+    def recall_at_full_precision(self) -> float | None:
+        return recall_at_full_precision(self.pr)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name, **self.score.to_dict(),
+            "max_f1": self.max_f1, "max_f1_min_fitness": self.max_f1_min_fitness,
+            "recall_at_full_precision": self.recall_at_full_precision,
+            "pr_curve": None if self.pr is None else {
+                "min_fitness": -self.pr.thresholds, "precision": self.pr.precision,
+                "recall": self.pr.recall, "f1": self.pr.f1,
+            },
+            "accepted_loops": [
+                {"query": loop.query, "match": loop.match, "fitness": float(f), "correct": bool(ok),
+                 "trans_err_m": None if err is None else err[0], "yaw_err_deg": None if err is None else err[1]}
+                for loop, f, ok, err in zip(self.loops, self.fitness, self.correct, self.pose_errors)
+            ],
+            "pose_graph": None if self.pose_graph is None else self.pose_graph.to_dict(),
+            "pose_graph_note": self.pose_graph_note,
+            "base_T_lidar": self.base_T_lidar, "base_T_lidar_source": self.base_T_lidar_source,
+        }
+
+
+def evaluate_verified(
+    gt: GroundTruth,
+    loops: Sequence[PublishedLoop],
+    fitness: Sequence[float],
+    *,
+    world_T_lidar: np.ndarray | None = None,
+    name: str = "LCPR + verification",
+) -> VerifiedLoops:
+    """Score verified loops (keyframe rows of ``gt``, at most one per query) against ``gt``.
+
+    ``world_T_lidar`` (N, 4, 4) true LiDAR poses (NaN rows: unknown) give the pose errors.
+    The sweep counts as positive every keyframe with a true loop and every query of a
+    correct loop, as the online protocol does.
+    """
+    loops = tuple(loops)
+    fit = np.asarray(fitness, np.float64).reshape(-1)
+    if len(fit) != len(loops):
+        raise InputShapeError(f"{len(fit)} fitness values for {len(loops)} loops; expected one per loop")
+    queries = [loop.query for loop in loops]
+    if len(set(queries)) != len(queries):
+        raise ValueError("several loops share a query; expected at most one verified loop per keyframe")
+    score = score_loops(loops, positions=gt.positions, world_T_lidar=world_T_lidar, has_revisit=gt.has_loop,
+                        radius=gt.radius)
+    correct = loop_correct(loops, gt.positions, gt.radius)
+    positive = gt.has_loop.copy()
+    positive[[q for q, ok in zip(queries, correct) if ok]] = True
+    pr = pr_sweep(-fit, correct, num_positives=int(positive.sum()), num_queries=len(gt.stamps)) if len(fit) else None
+    return VerifiedLoops(name=name, score=score, pr=pr, loops=loops, fitness=fit, correct=correct,
+                         pose_errors=tuple(loop_pose_errors(loops, world_T_lidar)))
+
+
+def verification_table(report: EvaluationReport) -> str:
+    """The verified loops beside the retrieval LCPR's online numbers, and the pose-graph line."""
+    v = report.verified
+    if v is None:
+        return ""
+    retrieval = next((m for m in report.methods if m.name == "LCPR"), report.methods[0] if report.methods else None)
+    left = "LCPR (retrieval)" if retrieval is None else f"{retrieval.name} (retrieval)"
+    width = max(22, len(v.name) + 2, len(left) + 2)
+    s = v.score
+    out = [f"{'':<34}{left:>{width}}{v.name:>{width}}"]
+
+    def row(label: str, a: str, b: str) -> None:
+        out.append(f"{label:<34}{a:>{width}}{b:>{width}}")
+
+    point = None if retrieval is None else retrieval.online.operating_point
+    row("online     loops (correct/wrong)", "-" if point is None else
+        f"{point.true_positives + point.false_positives} ({_op(point)})",
+        f"{s.loops} ({s.correct}/{s.loops - s.correct})")
+    row("online     precision / recall",
+        "-" if point is None else f"{_fmt(point.precision, '.2f')} / {_fmt(point.recall, '.2f')}",
+        f"{_fmt(s.precision, '.2f')} / {_fmt(s.recall, '.2f')}")
+    row("online     max F1 (R at P=1)",
+        "-" if retrieval is None else
+        f"{_fmt(retrieval.online.max_f1)} ({_fmt(retrieval.online.recall_at_full_precision, '.2f')})",
+        f"{_fmt(v.max_f1)} ({_fmt(v.recall_at_full_precision, '.2f')})")
+    row("           swept over", "descriptor distance", "fitness")
+    row("loop pose error median m / deg", "-", _err(s.trans_err_median, s.yaw_err_median))
+    row("loop pose error p95    m / deg", "-", _err(s.trans_err_p95, s.yaw_err_p95))
+    verify = None if retrieval is None else retrieval.latency.get("verify")
+    row("latency    p50 / p90 ms (verify)", "-", _lat(verify))
+    g = v.pose_graph
+    if g is not None:
+        out.append(f"pose graph (seeded odometry drift, {g.loops_used} verified loops as between-factors, {g.robust} "
+                   f"kernel): ATE {g.ate_drifted:.2f} m drifted -> {g.ate_corrected:.2f} m optimised ({g.ratio:.0%})")
+    elif v.pose_graph_note:
+        out.append(f"pose graph: {v.pose_graph_note}")
+    if v.base_T_lidar_source:
+        out.append(f"loop poses vs ground truth: base_T_lidar from {v.base_T_lidar_source}")
+    return "\n".join(out)
+
+
+def _err(metres: float | None, degrees: float | None) -> str:
+    return "-" if metres is None or degrees is None else f"{metres:.3f} / {degrees:.2f}"
+
+
 # ============================================================================ the report
 @dataclass
 class EvaluationReport:
@@ -469,12 +608,14 @@ class EvaluationReport:
     ground_truth: GroundTruth
     methods: list[MethodResult]
     wall_time_s: float = 0.0
+    verified: VerifiedLoops | None = None  # LCPR + verification; None when verification was off
 
     def to_dict(self) -> dict[str, Any]:
         return _jsonable({
             "source": self.source, "settings": self.settings, "counts": self.counts,
             "ground_truth": self.ground_truth.summary(), "wall_time_s": self.wall_time_s,
             "methods": [m.to_dict() for m in self.methods],
+            "verified": None if self.verified is None else self.verified.to_dict(),
         })
 
     def write_json(self, path: str | os.PathLike[str]) -> None:
@@ -544,6 +685,8 @@ def summary_table(report: EvaluationReport, *, n_values: Sequence[int] = (1, 5, 
     row("db/query   max F1", lambda m: _fmt(None if m.database_query is None else m.database_query.max_f1))
     row("latency    p50 / p90 ms (total)", lambda m: _lat(m.latency.get("total")))
     lines.append("\n".join(rows))
+    if report.verified is not None:
+        lines.append(verification_table(report))
     return "\n".join(lines)
 
 

@@ -5,8 +5,13 @@
 1. makes (or reuses) a synthetic-city drive with revisits (nuScenes-like rig) as a rosbag2;
 2. starts ``lcpr_node`` as its own process (a private ROS_DOMAIN_ID);
 3. replays the bag over DDS with its original stamps, listening to what the node publishes;
-4. compares the loops on ``~/loop_closure`` with the true revisits (<= 9 m, >= 30 s
-   older) and prints precision, recall, latency and where the PR plot was written.
+4. compares the loops on ``~/loop_closure`` (verified against the LiDAR) with the true
+   revisits (<= 9 m, >= 30 s older) and prints, beside what retrieval alone would have
+   published (the nearest descriptor under the bundled threshold), precision, recall,
+   the loops' relative-pose error against the drive's ground truth, latency, and what a
+   pose graph gains: the drive's poses with seeded odometry drift, the verified loops
+   added as between-factors with their covariances, optimised with GTSAM (ATE before and
+   after, ``posegraph.png``).
 """
 from __future__ import annotations
 
@@ -20,15 +25,20 @@ import sys
 import threading
 import time
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
 from lcpr_core.atomic import write_bytes_atomic
+from lcpr_core.errors import LcprError
+from lcpr_core.loop_report import PublishedLoop, pose_graph_proof, score_loops
+from lcpr_core.posegraph import DriftModel
 from lcpr_core.metrics import pr_sweep
 from lcpr_core.metrics import plot_pr_curve
 from lcpr_core.pretrained import BUNDLED_MAX_DISTANCE, default_weights
 from msg_tools.frames import NUSCENES_TOPICS
+from msg_tools.geometry import quaternion_to_matrix
 from msg_tools.ground_truth import revisit_pairs
 
 RADIUS = 9.0  # m: a loop is correct when the matched keyframe is this close (the paper's threshold)
@@ -40,6 +50,8 @@ class Truth:
     stamps: np.ndarray  # N keyframe stamps
     positions: np.ndarray  # N x 2
     has_revisit: np.ndarray  # N bool: an earlier keyframe >= 30 s older lies within 9 m
+    world_T_base: np.ndarray  # N x 4 x 4
+    base_T_lidar: np.ndarray  # 4 x 4
 
     def index(self, stamp: float) -> int:
         i = int(np.argmin(np.abs(self.stamps - stamp)))
@@ -62,8 +74,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     weights.add_argument("--weights", default=None, help="LCPR checkpoint (default: the bundled trained one)")
     weights.add_argument("--seeded", action="store_true", help="use the seeded random initialisation")
     p.add_argument("--max-distance", type=float, default=None,
-                   help=f"match.max_distance for the node (bundled weights: {BUNDLED_MAX_DISTANCE}, chosen on a "
-                        "validation city; otherwise the node's default)")
+                   help="match.max_distance for the node (default: the node's, 1.0: every candidate of the top 10 "
+                        f"is verified; with --no-verify and the bundled weights {BUNDLED_MAX_DISTANCE}, chosen on a "
+                        "validation city)")
+    p.add_argument("--no-verify", action="store_true",
+                   help="publish the nearest descriptor without checking it against the LiDAR (the old behaviour)")
+    p.add_argument("--drift-seed", type=int, default=0, help="seed of the odometry drift of the pose-graph proof")
     p.add_argument("--rate", type=float, default=1.0, help="replay speed (1.0 = real time)")
     p.add_argument("--out", type=Path, default=Path("out/demo"), help="working folder")
     p.add_argument("--startup-timeout", type=float, default=120.0, help="s to wait for the node")
@@ -81,6 +97,7 @@ def make_drive(args: argparse.Namespace) -> tuple[Path, Truth]:
     has = np.zeros(len(stamps), bool)
     pairs = revisit_pairs(positions, stamps, radius=RADIUS, min_time_gap=MIN_GAP)
     has[pairs[:, 0]] = True
+    poses = np.stack([drive.pose(i) for i in range(len(stamps))])
     bag = args.out / f"drive_seed{args.seed}_{args.frames}f_{width}x{height}"
     if bag.exists():
         print(f"[1/4] reusing the drive {bag}")
@@ -88,7 +105,7 @@ def make_drive(args: argparse.Namespace) -> tuple[Path, Truth]:
         print(f"[1/4] rendering a {len(stamps)}-keyframe drive of the synthetic city into {bag}")
         write_bag(drive, bag, workers=2,
                   wrap=lambda frames: tqdm(frames, total=len(stamps), desc="rendering", unit="frame"))
-    return bag, Truth(stamps, positions, has)
+    return bag, Truth(stamps, positions, has, poses, np.asarray(drive.rig.lidar.base_T_lidar, np.float64))
 
 
 def start_node(args: argparse.Namespace, weights: str, domain: int, log: Path) -> subprocess.Popen:
@@ -103,6 +120,8 @@ def start_node(args: argparse.Namespace, weights: str, domain: int, log: Path) -
         params["model.weights"] = weights
     if args.max_distance is not None:
         params["match.max_distance"] = str(args.max_distance)
+    if args.no_verify:
+        params["verify.enabled"] = "false"
     cmd = [sys.executable, "-m", "lcpr_ros.node", "--ros-args"]
     for key, value in params.items():
         cmd += ["-p", f"{key}:={value}"]
@@ -119,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
 
     args.out.mkdir(parents=True, exist_ok=True)
     weights = "" if args.seeded else (args.weights or default_weights() or "")
-    if args.max_distance is None and weights and weights == default_weights():
+    if args.no_verify and args.max_distance is None and weights and weights == default_weights():
         args.max_distance = BUNDLED_MAX_DISTANCE
     bag, truth = make_drive(args)
     domain = random.randint(1, 100)
@@ -169,13 +188,52 @@ def _wait_until_quiet(listener, *, quiet_s: float, timeout: float) -> None:
         time.sleep(0.5)
 
 
+def _pose_of(row: dict[str, float]) -> np.ndarray | None:
+    """match_T_query of a ~/candidates row (None when it was not registered)."""
+    if "tx" not in row or not np.isfinite(row["tx"]):
+        return None
+    T = np.eye(4)
+    T[:3, :3] = quaternion_to_matrix(np.array([row["qx"], row["qy"], row["qz"], row["qw"]]))
+    T[:3, 3] = (row["tx"], row["ty"], row["tz"])
+    return T
+
+
+def _covariance_of(row: dict[str, float]) -> np.ndarray | None:
+    if "cov_0" not in row or not np.isfinite(row["cov_0"]):
+        return None
+    return np.array([row[f"cov_{i}"] for i in range(36)]).reshape(6, 6)
+
+
+def published_loops(truth: Truth, out) -> list[PublishedLoop]:
+    """The loops on ~/loop_closure as keyframe indices, with the pose the matching ~/candidates row carries."""
+    rows = {(r["query_stamp"], r["match_stamp"]): r for batch in out.candidates for r in batch}
+    loops = []
+    for q, m in out.loops:
+        row = rows.get((q, m), {})
+        loops.append(PublishedLoop(truth.index(q), truth.index(m), _pose_of(row), _covariance_of(row)))
+    return loops
+
+
+def retrieval_only(truth: Truth, out, max_distance: float) -> list[PublishedLoop]:
+    """What the node published before verification: each query's nearest descriptor under ``max_distance``."""
+    loops = []
+    for batch in out.candidates:
+        for row in batch:
+            if row["rank"] == 0 and row["distance"] <= max_distance:
+                loops.append(PublishedLoop(truth.index(row["query_stamp"]), truth.index(row["match_stamp"]),
+                                           None, None))
+    return loops
+
+
 def report(args, truth: Truth, out, detector: dict, inputs: dict, replay_s: float, weights: str) -> int:
-    loops = [(q, m, truth.correct(q, m)) for q, m in out.loops]
-    tp = sum(ok for *_, ok in loops)
-    found = {truth.index(q) for q, _, ok in loops if ok}
+    world_T_lidar = truth.world_T_base @ truth.base_T_lidar
+    positions = np.c_[truth.positions, np.zeros(len(truth.positions))]
+    score = partial(score_loops, positions=positions, world_T_lidar=world_T_lidar, has_revisit=truth.has_revisit,
+                    radius=RADIUS)
+    loops = published_loops(truth, out)
+    verified = score(loops)
+    baseline = score(retrieval_only(truth, out, BUNDLED_MAX_DISTANCE))
     n_true = int(truth.has_revisit.sum())
-    precision = tp / len(loops) if loops else float("nan")
-    recall = len(found) / n_true if n_true else float("nan")
 
     best = {}  # query stamp -> (top-1 distance, correct)
     for rows in out.candidates:
@@ -187,31 +245,60 @@ def report(args, truth: Truth, out, detector: dict, inputs: dict, replay_s: floa
     pr = pr_sweep(dist, ok, num_positives=n_true, num_queries=len(truth.stamps)) if len(dist) else None
     plot = args.out / "pr_curve.png"
     if pr is not None:
-        plot_pr_curve(pr, plot, title="lcpr_node on the demo drive (top-1)")
+        plot_pr_curve(pr, plot, title="lcpr_node on the demo drive (top-1 descriptor distance)")
+    proof, proof_note = None, ""
+    graph_png = args.out / "posegraph.png"
+    try:
+        proof = pose_graph_proof(truth.world_T_base, loops, body_T_lidar=truth.base_T_lidar,
+                                 drift=DriftModel(seed=args.drift_seed), plot=graph_png,
+                                 title="demo drive: verified loops in a GTSAM pose graph")
+    except LcprError as err:
+        proof_note = f"pose graph skipped: {err}"
 
+    mode = "retrieval only (--no-verify)" if args.no_verify else "verified against the LiDAR"
     print(f"\nLCPR loop closure through DDS: {len(truth.stamps)} keyframes replayed in {replay_s:.0f} s")
     print(f"  weights:            {weights}")
     print(f"  true revisits:      {n_true} keyframes have an earlier keyframe within {RADIUS:.0f} m "
           f"and >= {MIN_GAP:.0f} s older")
-    print(f"  loops published:    {len(loops)} on ~/loop_closure, {tp} correct, {len(loops) - tp} wrong")
-    print(f"  precision:          {precision:.2f}")
-    print(f"  recall:             {recall:.2f} ({len(found)} of {n_true} revisiting keyframes closed)")
+    print(f"  loops published:    {verified.loops} on ~/loop_closure ({mode}), {verified.correct} correct, "
+          f"{verified.loops - verified.correct} wrong")
+    print(f"  precision:          {_f(verified.precision)}   (retrieval alone, nearest descriptor under "
+          f"{BUNDLED_MAX_DISTANCE}: {_f(baseline.precision)})")
+    print(f"  recall:             {_f(verified.recall)} ({verified.closed} of {n_true} revisiting keyframes closed; "
+          f"retrieval alone: {_f(baseline.recall)})")
+    if verified.trans_err_median is not None:
+        print(f"  loop pose error:    median {verified.trans_err_median:.3f} m / {verified.yaw_err_median:.2f} deg, "
+              f"p95 {verified.trans_err_p95:.3f} m / {verified.yaw_err_p95:.2f} deg (vs ground truth)")
     print(f"  keyframes:          {detector.get('session keyframes', '?')} in the node's map "
           f"({detector.get('frames too soon', 0)} too soon, drops: "
           f"{', '.join(f'{k[8:]} {v}' for k, v in inputs.items() if k.startswith('dropped ')) or 'none'})")
     print(f"  latency per frame:  p50 {detector.get('latency p50 (ms)', '?')} ms, "
-          f"p90 {detector.get('latency p90 (ms)', '?')} ms (model p50 {detector.get('model p50 (ms)', '?')} ms)")
+          f"p90 {detector.get('latency p90 (ms)', '?')} ms (model p50 {detector.get('model p50 (ms)', '?')} ms, "
+          f"verification p50 {detector.get('verify p50 (ms)', '?')} ms)")
+    print(f"  candidates:         {detector.get('candidates verified', 0)} verified, "
+          f"{detector.get('candidates rejected', 0)} rejected")
+    if proof is not None:
+        print(f"  pose graph:         ATE {proof.ate_drifted:.2f} m drifted odometry -> {proof.ate_corrected:.2f} m "
+              f"with {proof.loops_used} loops ({proof.ratio:.0%}); plot {graph_png}")
+    elif proof_note:
+        print(f"  {proof_note}")
     if pr is not None:
         print(f"  max F1 over ~/candidates distances: {pr.max_f1:.2f} at distance {pr.max_f1_threshold:.3f}")
         print(f"  PR plot:            {plot}")
     summary = {
-        "weights": weights, "keyframes": len(truth.stamps), "true_revisits": n_true, "loops": len(loops),
-        "correct": tp, "precision": precision, "recall": recall, "max_f1": None if pr is None else pr.max_f1,
-        "detector": detector, "inputs": inputs,
+        "weights": weights, "keyframes": len(truth.stamps), "true_revisits": n_true, "verify": not args.no_verify,
+        "loops": verified.loops, "correct": verified.correct, "precision": verified.precision,
+        "recall": verified.recall, "verified": verified.to_dict(), "retrieval_only": baseline.to_dict(),
+        "pose_graph": None if proof is None else proof.to_dict(),
+        "max_f1": None if pr is None else pr.max_f1, "detector": detector, "inputs": inputs,
     }
-    write_bytes_atomic(args.out / "demo_report.json", json.dumps(summary, indent=2).encode())
+    write_bytes_atomic(args.out / "demo_report.json", json.dumps(summary, indent=2, default=str).encode())
     print(f"  report:             {args.out / 'demo_report.json'}")
     return 0
+
+
+def _f(value: float | None) -> str:
+    return "n/a" if value is None or not np.isfinite(value) else f"{value:.2f}"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -8,6 +8,18 @@ the precision-recall sweep thresholds afterwards; ``--max-distance`` is only the
 operating point reported and drawn), runs the Scan Context baseline on the same
 keyframes, and writes into ``--out``: report.json, pr_curve.png, latency.png,
 trajectory.png. Protocols: see :mod:`lcpr_core.evaluation`.
+
+With geometric verification on (the default; ``--no-verify`` turns it off), every
+candidate is also registered against the LiDAR and each keyframe's verified loop
+(``Result.loop``: the verified candidate with the best fitness) is reported as
+"LCPR + verification" beside the retrieval rows: precision, recall, max F1 over the
+fitness, recall at precision 1, the number of loops and their relative-pose error
+against the bag's ground truth (odometry poses are world_T_base; the LiDAR extrinsic
+base_T_lidar comes from /tf_static, ``--base-frame`` to the clouds' frame, identity
+when the bag has no such transform, as for KITTI-style bags where base = LiDAR). The
+verified loops are also added to a pose graph over a seeded drift of the ground
+truth (:func:`lcpr_core.loop_report.pose_graph_proof`, GTSAM): ATE before and after,
+and posegraph.png.
 """
 from __future__ import annotations
 
@@ -30,24 +42,31 @@ from lcpr_core.errors import LcprError
 from lcpr_core.evaluation import (
     EvaluationReport,
     MethodRun,
+    VerifiedLoops,
     evaluate_method,
+    evaluate_verified,
     ground_truth,
     plot_latency,
     plot_pr_curves,
     plot_trajectory,
     summary_table,
 )
+from lcpr_core.loop_report import PublishedLoop, pose_graph_proof
+from lcpr_core.posegraph import DriftModel
 from lcpr_core.preprocess import PRESETS
 from lcpr_core.scan_context import ScanContextConfig, ScanContextMatcher, rank_database
-from msg_tools.bags import read_frames
+from lcpr_core.verification import VerifierConfig
+from msg_tools.bags import read_frames, read_static_transforms
 from msg_tools.errors import MsgToolsError
 from msg_tools.frames import KITTI_TOPICS, NUSCENES_TOPICS, SensorFrame, Topics
+from msg_tools.transforms import BASE_FRAME
 
 TOPIC_PRESETS: dict[str, Topics] = {"nuscenes": NUSCENES_TOPICS, "kitti": KITTI_TOPICS}
 LIDAR_FOR_TOPICS = {"nuscenes": "nuscenes_lidar_top", "kitti": "kitti_hdl64e"}
 COLLECT_ALL = 2.0 + 1e-3  # unit descriptors are at most 2 apart: every candidate is kept
 N_VALUES = (1, 5, 10)
 OUTPUT_FILES = ("report.json", "pr_curve.png", "latency.png", "trajectory.png")
+POSEGRAPH_FILE = "posegraph.png"  # written besides OUTPUT_FILES when the pose-graph proof ran
 
 
 @dataclass(frozen=True)
@@ -66,9 +85,13 @@ class EvalOptions:
     limit: int = 0  # frames to process; 0 = all
     warmup: int = 5  # keyframes left out of the latency statistics
     split_offset: float | None = None  # s after the first keyframe where database/query split; None = first revisit
+    verify: VerifierConfig = field(default_factory=VerifierConfig)  # enabled=False: retrieval only
+    base_frame: str = BASE_FRAME  # the odometry's child frame: base_T_lidar = /tf_static base_frame -> cloud frame
+    drift_seed: int = 0  # seed of the odometry drift of the pose-graph proof
+    pose_graph: bool = True  # run the pose-graph proof with the verified loops (needs gtsam)
 
     def __post_init__(self) -> None:
-        for name in ("exclude_recent_s", "max_distance", "sc_max_distance", "slop", "limit", "warmup"):
+        for name in ("exclude_recent_s", "max_distance", "sc_max_distance", "slop", "limit", "warmup", "drift_seed"):
             value = getattr(self, name)
             if value is not None and not value >= 0:
                 raise ValueError(f"{name}={value!r}; it must be >= 0")
@@ -94,6 +117,11 @@ class _RunRecord:
     sc_dist: list[list[float]] = field(default_factory=list)
     sc_timings: list[dict[str, float]] = field(default_factory=list)
     map_ids: list[int] = field(default_factory=list)
+    poses: list[np.ndarray] = field(default_factory=list)  # 4 x 4 world_T_base, NaN where unknown
+    # the keyframe's verified loop (Result.loop): (match map id, match_T_query, covariance, fitness), or None
+    verified: list[tuple[int, np.ndarray | None, np.ndarray | None, float] | None] = field(default_factory=list)
+    verification: bool = False  # the detector verified candidates
+    lidar_frame: str | None = None  # frame id of the clouds (the first keyframe's)
     reasons: Counter = field(default_factory=Counter)
     degraded: int = 0
     frames: int = 0
@@ -118,6 +146,7 @@ def evaluate_bag(
     config = DetectorConfig(
         model=opts.model, keyframe=opts.keyframe,
         match=MatchConfig(top_k=max(N_VALUES), max_distance=COLLECT_ALL, exclude_recent_s=opts.exclude_recent_s),
+        verify=opts.verify,
     )
     sc_cfg = None if opts.scan_context is None else dataclasses.replace(
         opts.scan_context, exclude_recent_s=opts.exclude_recent_s)
@@ -147,8 +176,60 @@ def evaluate_bag(
         "dropped_clouds": stream.stats.dropped_clouds, "reader": stats,
     }
     report = _evaluate(record, opts, sc_cfg, counts, os.fspath(bag))
+    if record.verification:
+        report.verified = _verified(record, opts, report, bag)
     report.wall_time_s = time.perf_counter() - start
     return report
+
+
+def base_T_lidar_of(bag: str | os.PathLike[str], lidar_frame: str | None, *, base_frame: str = BASE_FRAME,
+                    tf_static: str = "/tf_static") -> tuple[np.ndarray, str]:
+    """(base_T_lidar (4, 4), where it came from): ``tf_static`` ``base_frame`` -> ``lidar_frame``, else identity."""
+    if lidar_frame is None:
+        return np.eye(4), "identity (no keyframe, no cloud frame)"
+    if lidar_frame == base_frame:
+        return np.eye(4), f"identity (the clouds are in {base_frame!r})"
+    try:
+        found = read_static_transforms(bag, topic=tf_static).lookup(base_frame, lidar_frame)
+    except MsgToolsError as err:
+        return np.eye(4), f"identity ({tf_static} unreadable: {err})"
+    if found is None:
+        return np.eye(4), f"identity (no {tf_static} transform links {base_frame!r} to {lidar_frame!r})"
+    return np.asarray(found, np.float64), f"{tf_static} {base_frame} -> {lidar_frame}"
+
+
+def _verified(record: _RunRecord, opts: EvalOptions, report: EvaluationReport,
+              bag: str | os.PathLike[str]) -> VerifiedLoops:
+    """Score each keyframe's verified loop and put them in a pose graph over drifted ground truth."""
+    row_of = {map_id: row for row, map_id in enumerate(record.map_ids)}
+    loops, fitness = [], []
+    for row, entry in enumerate(record.verified):
+        if entry is not None and entry[0] in row_of:
+            match_id, match_T_query, covariance, fit = entry
+            loops.append(PublishedLoop(row, row_of[match_id], match_T_query, covariance))
+            fitness.append(fit)
+    base_T_lidar, source = base_T_lidar_of(bag, record.lidar_frame, base_frame=opts.base_frame,
+                                           tf_static=opts.topics.tf_static)
+    world_T_base = np.asarray(record.poses, np.float64).reshape(-1, 4, 4)
+    result = evaluate_verified(report.ground_truth, loops, fitness, world_T_lidar=world_T_base @ base_T_lidar)
+    proof, note = None, ""
+    missing = int((~np.isfinite(world_T_base).all(axis=(1, 2))).sum())
+    if not opts.pose_graph:
+        note = "not run (disabled)"
+    elif len(world_T_base) < 2:
+        note = f"not run ({len(world_T_base)} keyframes)"
+    elif missing:
+        note = f"not run ({missing} keyframes without an odometry pose)"
+    elif not any(loop.match_T_query is not None for loop in loops):
+        note = "not run (no verified loop with a pose)"
+    else:
+        try:
+            proof = pose_graph_proof(world_T_base, loops, body_T_lidar=base_T_lidar,
+                                     drift=DriftModel(seed=opts.drift_seed))
+        except LcprError as err:  # gtsam missing, or a pose it cannot use
+            note = f"not run: {err}"
+    return dataclasses.replace(result, pose_graph=proof, pose_graph_note=note, base_T_lidar=base_T_lidar,
+                               base_T_lidar_source=source)
 
 
 def _step(frame: SensorFrame, record: _RunRecord) -> None:
@@ -158,10 +239,22 @@ def _step(frame: SensorFrame, record: _RunRecord) -> None:
     record.reasons[result.reason] += 1
     if result.keyframe_id is None:
         return
-    position = np.full(3, np.nan) if frame.pose is None else np.asarray(frame.pose, np.float64)[:3, 3]
+    pose = np.full((4, 4), np.nan) if frame.pose is None else np.asarray(frame.pose, np.float64)
+    position = pose[:3, 3].copy()
     record.stamps.append(frame.stamp)
     record.positions.append(position)
+    record.poses.append(pose)
     record.map_ids.append(result.keyframe_id)
+    if record.lidar_frame is None:
+        record.lidar_frame = frame.lidar_frame_id
+    record.verification = result.verification
+    loop = result.loop if result.verification else None
+    record.verified.append(None if loop is None else (
+        loop.match_id,
+        None if loop.match_T_query is None else np.array(loop.match_T_query, np.float64),
+        None if loop.covariance is None else np.array(loop.covariance, np.float64),
+        float(loop.fitness),
+    ))
     record.lcpr_ids.append([c.match_id for c in result.candidates])
     record.lcpr_dist.append([c.distance for c in result.candidates])
     record.lcpr_timings.append(dict(result.timings))
@@ -215,6 +308,8 @@ def _evaluate(record: _RunRecord, opts: EvalOptions, sc_cfg: ScanContextConfig |
         "radius": opts.radius, "max_distance": opts.max_distance, "sc_max_distance": opts.sc_max_distance,
         "scan_context": None if sc_cfg is None else dataclasses.asdict(sc_cfg), "slop": opts.slop,
         "limit": opts.limit, "warmup": opts.warmup, "n_values": list(N_VALUES), "split_offset": opts.split_offset,
+        "verify": dataclasses.asdict(opts.verify), "base_frame": opts.base_frame, "drift_seed": opts.drift_seed,
+        "pose_graph": opts.pose_graph,
     }
     return EvaluationReport(source=source, settings=settings, counts=counts, ground_truth=gt, methods=methods)
 
@@ -241,13 +336,21 @@ def _bar(total: int, enabled: bool) -> Any:
 
 
 def write_outputs(report: EvaluationReport, out: str | os.PathLike[str]) -> list[Path]:
-    """report.json and the three figures into ``out``; returns their paths."""
+    """report.json, the three figures and, when the pose-graph proof ran, posegraph.png into ``out``.
+
+    Returns the paths written.
+    """
     folder = Path(out)
     paths = [folder / name for name in OUTPUT_FILES]
     report.write_json(paths[0])
     plot_pr_curves(report.methods, paths[1])
     plot_latency(report.methods, paths[2], warmup=int(report.settings.get("warmup", 0)))
     plot_trajectory(report.ground_truth, report.methods, paths[3])
+    proof = None if report.verified is None else report.verified.pose_graph
+    if proof is not None:
+        paths.append(folder / POSEGRAPH_FILE)
+        proof.write_plot(paths[-1], title=f"{Path(report.source).name}: verified loops in a GTSAM pose graph "
+                                          "(seeded odometry drift)")
     return paths
 
 
@@ -290,6 +393,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     g.add_argument("--limit", type=int, default=0, help="process at most N frames (default 0: all)")
     g.add_argument("--warmup", type=int, default=5, help="keyframes left out of latency statistics (default 5)")
     g.add_argument("--no-scan-context", action="store_true", help="skip the Scan Context baseline")
+    g.add_argument("--no-verify", action="store_true",
+                   help="no geometric verification against the LiDAR (retrieval only: no verified rows, no pose graph)")
+    g.add_argument("--base-frame", default=BASE_FRAME,
+                   help="odometry child frame; base_T_lidar is the /tf_static transform from it to the cloud frame "
+                        f"(default {BASE_FRAME}; identity when the bag has none)")
+    g.add_argument("--drift-seed", type=int, default=0,
+                   help="seed of the pose-graph proof's odometry drift (default 0)")
     g.add_argument("--lidar-height", type=float, default=2.0, help="m added to z by Scan Context (default 2.0)")
     g.add_argument("--quiet", action="store_true", help="no progress bar")
     return p.parse_args(argv)
@@ -317,7 +427,8 @@ def options_from_args(args: argparse.Namespace) -> EvalOptions:
         exclude_recent_s=args.exclude_recent, radius=args.radius, max_distance=args.max_distance,
         scan_context=None if args.no_scan_context else ScanContextConfig(lidar_height=args.lidar_height),
         sc_max_distance=args.sc_max_distance, slop=args.slop, limit=args.limit, warmup=args.warmup,
-        split_offset=args.split_offset,
+        split_offset=args.split_offset, verify=VerifierConfig(enabled=not args.no_verify),
+        base_frame=args.base_frame, drift_seed=args.drift_seed,
     )
 
 

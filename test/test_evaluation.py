@@ -331,3 +331,82 @@ def main_ok(argv: list[str]) -> bool:
     from lcpr_ros.evaluate import main
 
     return main(argv) == 0
+
+
+# ------------------------------------------------------------------ LCPR + verification
+def test_verified_loops_are_scored_by_the_loop_report_rule_and_reported_beside_retrieval() -> None:
+    from lcpr_core.evaluation import evaluate_verified
+    from lcpr_core.loop_report import PublishedLoop
+
+    report = line_report()
+    gt = report.ground_truth
+    world_T_lidar = np.tile(np.eye(4), (70, 1, 1))
+    world_T_lidar[:, :3, 3] = gt.positions
+    est = np.eye(4)
+    est[:3, 3] = (0.0, 0.2, 0.0)  # the truth between rows 60 + j and j is identity: 0.2 m off, 0 deg
+    loops = [PublishedLoop(60, 0, est, np.eye(6) * 0.01), PublishedLoop(61, 1, est, None),
+             PublishedLoop(62, 40), PublishedLoop(35, 0, est, None)]  # 62 -> 40 and 35 -> 0: wrong
+    verified = evaluate_verified(gt, loops, [0.9, 0.6, 0.8, 0.5], world_T_lidar=world_T_lidar)
+    s = verified.score
+    assert (s.loops, s.correct, s.closed, s.true_revisits) == (4, 2, 2, 10)
+    assert s.precision == pytest.approx(0.5) and s.recall == pytest.approx(0.2)
+    assert s.trans_err_median == pytest.approx(0.2) and s.yaw_err_p95 == pytest.approx(0.0, abs=1e-9)
+    # by fitness: .9 T, .8 F, .6 T, .5 F -> R at P=1 is 0.1; max F1 at fitness 0.6: P 2/3, R 0.2
+    assert verified.recall_at_full_precision == pytest.approx(0.1)
+    assert verified.max_f1 == pytest.approx(2 * (2 / 3) * 0.2 / (2 / 3 + 0.2)) and verified.max_f1_min_fitness == 0.6
+    with pytest.raises(ValueError, match="share a query"):
+        evaluate_verified(gt, loops[:2] + [PublishedLoop(60, 2)], [0.9, 0.6, 0.5])
+
+    report.verified = verified
+    data = json.loads(json.dumps(report.to_dict(), allow_nan=False))["verified"]
+    assert data["precision"] == 0.5 and data["loops"] == 4 and data["pr_curve"]["min_fitness"][0] == 0.9
+    assert [(a["query"], a["correct"]) for a in data["accepted_loops"]] == [(60, True), (61, True), (62, False),
+                                                                            (35, False)]
+    assert data["accepted_loops"][0]["trans_err_m"] == pytest.approx(0.2) and data["pose_graph"] is None
+    text = summary_table(report)
+    assert "LCPR (retrieval)" in text and "LCPR + verification" in text
+    assert "0.80 / 0.40" in text and "0.50 / 0.20" in text and "0.200 / 0.00" in text  # retrieval | verified
+
+
+def test_the_lidar_extrinsic_comes_from_tf_static_or_is_identity(tmp_path: Path) -> None:
+    from lcpr_ros.evaluate import base_T_lidar_of
+    from msg_tools import NUSCENES_TOPICS, BagWriter, SensorFrame, xyz_cloud
+
+    mount = np.eye(4)
+    mount[:3, :3] = [[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    mount[:3, 3] = (0.94, 0.0, 1.84)
+    with BagWriter(tmp_path / "tf") as writer:
+        writer.write_static_transforms([], "LIDAR_TOP", mount)
+        writer.write_frame(SensorFrame(1.0, [], xyz_cloud(np.zeros((3, 3))), "LIDAR_TOP", np.eye(4)),
+                           topics=NUSCENES_TOPICS)
+    found, source = base_T_lidar_of(tmp_path / "tf", "LIDAR_TOP")
+    np.testing.assert_allclose(found, mount, atol=1e-9)
+    assert source == "/tf_static base_link -> LIDAR_TOP"
+    found, source = base_T_lidar_of(tmp_path / "tf", "velodyne")
+    assert np.array_equal(found, np.eye(4)) and "no /tf_static transform links 'base_link' to 'velodyne'" in source
+
+
+def test_lcpr_eval_reports_the_verified_loops_beside_retrieval(loop_bag: Path) -> None:
+    from lcpr_ros.evaluate import evaluate_bag, options_from_args, parse_args
+
+    options = options_from_args(parse_args([str(loop_bag), "--no-scan-context", *SMALL]))
+    report = evaluate_bag(loop_bag, options, progress=False)
+    verified = report.verified
+    assert verified is not None and verified.name == "LCPR + verification"
+    s = verified.score
+    keyframes = report.counts["keyframes"]
+    assert keyframes == 24 and 0 <= s.correct <= s.loops <= keyframes
+    assert s.precision is None or 0.0 <= s.precision <= 1.0
+    assert s.true_revisits == 9 and 0.0 <= s.recall <= 1.0
+    assert all(0.0 <= f <= 1.0 for f in verified.fitness)
+    assert "identity" in verified.base_T_lidar_source  # the bag has no /tf_static: clouds are in the base frame
+    assert verified.pose_graph is not None or verified.pose_graph_note
+    data = report.to_dict()
+    assert data["verified"]["loops"] == s.loops and data["settings"]["verify"]["enabled"] is True
+    assert "LCPR + verification" in summary_table(report)
+    # --no-verify: retrieval only, as before
+    options = options_from_args(parse_args([str(loop_bag), "--no-scan-context", "--no-verify", "--limit", "4",
+                                            *SMALL]))
+    plain = evaluate_bag(loop_bag, options, progress=False)
+    assert plain.verified is None and plain.to_dict()["verified"] is None
+    assert "LCPR + verification" not in summary_table(plain)

@@ -1,10 +1,11 @@
 """Compact keyframe clouds: what the verifier registers, and what a map keeps per keyframe.
 
-A cloud is cropped by range, voxel-downsampled (centroid per voxel, small_gicp's
-voxel grid), capped at ``max_points`` (an evenly spaced subset) and quantised to
-int16 centimetres: 6 bytes a point, at most 6 * max_points bytes per keyframe
-(24 KiB at the defaults) plus 24 bytes of bookkeeping. A 1-hour drive with a keyframe
-a second keeps at most ~85 MiB of clouds.
+A cloud is cropped by range, voxel-downsampled (the centroid of each voxel, small_gicp's
+voxel grid: smoother surfaces than keeping one raw point per voxel, which registers and
+discriminates worse), capped at ``max_points`` (an evenly spaced subset) and quantised
+to int16 centimetres: 6 bytes a point, at most 6 * max_points bytes per keyframe
+(18 KiB at the defaults) plus 16 bytes of bookkeeping. A 1-hour drive with a keyframe
+a second keeps at most ~63 MiB of clouds.
 """
 from __future__ import annotations
 
@@ -21,12 +22,13 @@ SCALE = 0.01  # m per int16 unit
 _LIMIT = 32767
 
 
-def compact_cloud(points: np.ndarray, config: CloudConfig | None = None, *, num_threads: int = 1) -> np.ndarray:
+def compact_cloud(points: np.ndarray, config: CloudConfig | None = None) -> np.ndarray:
     """N x (>=3) points -> M x 3 float32 (M <= max_points), on the int16 centimetre grid.
 
     Non-finite points and points outside [min_range, max_range] are dropped. The
-    result is what :class:`CloudStore` keeps, so a cloud read back from a saved map is
-    bit-identical to the one registered live.
+    result is what :class:`CloudStore` keeps (bit-identical when read back). Compacting
+    a compact cloud again moves a few points (centroids of centimetre-rounded centroids):
+    registration code uses the stored cloud as it is.
     """
     cfg = config if config is not None else CloudConfig()
     pts = np.asarray(points)
@@ -38,7 +40,7 @@ def compact_cloud(points: np.ndarray, config: CloudConfig | None = None, *, num_
     xyz = xyz[(dist >= cfg.min_range) & (dist <= cfg.max_range)]
     if len(xyz) == 0:
         return np.zeros((0, 3), np.float32)
-    down = small_gicp.voxelgrid_sampling(xyz, cfg.voxel, num_threads=num_threads).points()[:, :3]
+    down = small_gicp.voxelgrid_sampling(xyz, cfg.voxel, num_threads=1).points()[:, :3]  # 1 thread: deterministic
     if len(down) > cfg.max_points:
         down = down[np.linspace(0, len(down) - 1, cfg.max_points).round().astype(np.int64)]
     return dequantise(quantise(down))

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..scan_context import ScanContextConfig, _all_shifts, scan_context
+from ..scan_context import ScanContextConfig, scan_context
 
 SC_CONFIG = ScanContextConfig(num_rings=20, num_sectors=72, max_range=80.0, lidar_height=3.0)
 
@@ -45,17 +45,33 @@ def yaw_candidates(query_sc: np.ndarray, match_sc: np.ndarray, count: int) -> li
 
     A query sensor turned by +psi relative to the match sees the match's columns
     rolled by -psi: ``np.roll(match_sc, s)`` aligns with ``query_sc`` at s = -psi / sector.
+    Shifts are scored by the summed column cosine, not the mean: with a narrow field of
+    view (a Livox sees ~70 deg) a shift that overlaps two columns by chance must not
+    beat one that overlaps all of them.
     """
-    dist = _all_shifts(query_sc, match_sc)  # (sectors,)
-    sectors = len(dist)
-    left, right = np.roll(dist, 1), np.roll(dist, -1)
-    minima = np.flatnonzero((dist <= left) & (dist <= right))
-    order = minima[np.argsort(dist[minima], kind="stable")]
-    if len(order) < count:  # flat distance profile: fill with the plain best shifts
-        rest = [s for s in np.argsort(dist, kind="stable") if s not in set(order.tolist())]
+    score = _shift_scores(query_sc, match_sc)  # (sectors,)
+    sectors = len(score)
+    left, right = np.roll(score, 1), np.roll(score, -1)
+    peaks = np.flatnonzero((score >= left) & (score >= right))
+    order = peaks[np.argsort(-score[peaks], kind="stable")]
+    if len(order) < count:  # flat profile: fill with the plain best shifts
+        taken = set(order.tolist())
+        rest = [s for s in np.argsort(-score, kind="stable") if s not in taken]
         order = np.concatenate([order, rest]).astype(np.int64)
     step = 2.0 * math.pi / sectors
     return [_wrap(-float(s) * step) for s in order[:count]]
+
+
+def _shift_scores(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(sectors,) sum over columns occupied in both of cos(a[:, j], roll(b, s)[:, j]), for every shift s."""
+    sectors = a.shape[1]
+    a64, b64 = a.astype(np.float64), b.astype(np.float64)
+    na, nb = np.linalg.norm(a64, axis=0), np.linalg.norm(b64, axis=0)
+    ua = np.divide(a64, na, out=np.zeros_like(a64), where=na > 0)
+    ub = np.divide(b64, nb, out=np.zeros_like(b64), where=nb > 0)
+    gram = ua.T @ ub  # (j, k) = cos(a[:, j], b[:, k])
+    cols = (np.arange(sectors)[None, :] - np.arange(sectors)[:, None]) % sectors  # (s, j) -> k
+    return gram[np.arange(sectors)[None, :], cols].sum(axis=1)
 
 
 def bev_image(xyz: np.ndarray, *, cell: float, extent: float) -> np.ndarray:

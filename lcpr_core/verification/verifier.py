@@ -6,8 +6,10 @@
 
 ``match_T_query`` maps points of the query keyframe's LiDAR frame into the match
 keyframe's LiDAR frame (p_match = T @ p_query). ``covariance`` is 6 x 6 over
-(x, y, z, roll, pitch, yaw), translation first as in geometry_msgs/PoseWithCovariance,
-as a right (query-frame) perturbation of ``match_T_query``.
+(x, y, z, roll, pitch, yaw), translation first and expressed in the match (parent)
+frame as in geometry_msgs/PoseWithCovariance: ``(Exp(d_rot) R, t + d_t)``.
+``lcpr_core.posegraph.to_gtsam_covariance`` turns it into GTSAM's (rotation,
+translation) child-frame tangent.
 
 Registration is small_gicp's (GICP on voxel-downsampled clouds, per-point covariances
 from 10 neighbours): see the README for the comparison with kiss-icp that chose it.
@@ -32,6 +34,7 @@ REJECT_REASONS: tuple[str, ...] = (
 )
 _ROS_ORDER = [3, 4, 5, 0, 1, 2]  # small_gicp's (rotation, translation) tangent -> (x, y, z, roll, pitch, yaw)
 _NEIGHBOURS = 10
+_COARSE_STRIDE = 8  # every 8th point estimates the overlap of a coarse result
 
 
 @dataclass
@@ -43,6 +46,8 @@ class PreparedCloud:
     tree: small_gicp.KdTree | None
     context: np.ndarray  # Scan Context for the yaw guess
     normals: np.ndarray  # M x 3 unit normals (smallest principal axis of each point's neighbourhood)
+    coarse: small_gicp.PointCloud | None = None  # the cloud at verify.coarse_voxel, for the coarse stage
+    coarse_tree: small_gicp.KdTree | None = None
     _bev: BevMatcher | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
@@ -107,9 +112,13 @@ class GeometricVerifier:
             return PreparedCloud(xyz=xyz, cloud=None, tree=None, context=polar_context(xyz), normals=np.zeros_like(xyz))
         cloud = small_gicp.PointCloud(xyz)
         tree = small_gicp.KdTree(cloud, num_threads=threads)
-        small_gicp.estimate_covariances(cloud, tree, num_neighbors=_NEIGHBOURS, num_threads=threads)
-        normals = np.linalg.eigh(np.asarray(cloud.covs())[:, :3, :3])[1][:, :, 0]
-        return PreparedCloud(xyz=xyz, cloud=cloud, tree=tree, context=polar_context(xyz), normals=normals)
+        small_gicp.estimate_normals_covariances(cloud, tree, num_neighbors=_NEIGHBOURS, num_threads=threads)
+        normals = np.asarray(cloud.normals())[:, :3]
+        coarse = small_gicp.voxelgrid_sampling(cloud, self.config.coarse_voxel)  # single thread: deterministic
+        coarse_tree = small_gicp.KdTree(coarse, num_threads=threads)
+        small_gicp.estimate_covariances(coarse, coarse_tree, num_neighbors=_NEIGHBOURS, num_threads=threads)
+        return PreparedCloud(xyz=xyz, cloud=cloud, tree=tree, context=polar_context(xyz), normals=normals,
+                             coarse=coarse, coarse_tree=coarse_tree)
 
     # -- verification ----------------------------------------------------------------------
     def verify(self, query_xyz: np.ndarray, match_xyz: np.ndarray, initial_guess: np.ndarray | None = None
@@ -126,15 +135,30 @@ class GeometricVerifier:
         if min(len(query), len(match)) < cfg.min_points or query.tree is None or match.tree is None:
             return Verification(False, "too few points", np.eye(4), 0.0, seconds=time.perf_counter() - tic)
         if initial_guess is not None:
-            guess = np.asarray(initial_guess, np.float64)
-            if guess.shape != (4, 4) or not np.isfinite(guess).all():
-                raise VerificationError(f"initial_guess of shape {guess.shape} is not a finite 4 x 4 transform")
-            starts = [guess]
+            starts = [_rigid(initial_guess)]
         else:
-            starts = [h.matrix() for h in self.hypotheses(query, match)]
-        results = [self._register(query, match, T0) for T0 in starts]
-        verdict = self._judge(results)
+            starts = self.starts(query, match)
+        coarse = [self._coarse(query, match, T0) for T0 in starts]  # (overlap at the coarse pose, T, T0)
+        coarse.sort(key=lambda c: -c[0])
+        early = coarse[0][0]
+        if early < cfg.early_reject * cfg.min_fitness:  # far from acceptable already: skip the fine stage
+            return Verification(False, "low overlap", coarse[0][1], early, initial=coarse[0][2],
+                                seconds=time.perf_counter() - tic)
+        best = self._fine(query, match, coarse[0][1], coarse[0][2])
+        rivals = [T for score, T, _ in coarse[1:] if score >= coarse[0][0] - cfg.ambiguity_margin]
+        verdict = self._judge(best, rivals, query, match)
         return _replace_seconds(verdict, time.perf_counter() - tic)
+
+    def starts(self, query: PreparedCloud, match: PreparedCloud) -> list[np.ndarray]:
+        """Initial guesses: the best BEV hypotheses, the best yaw with no offset, and identity.
+
+        A revisit is usually within a few metres, most often facing the same way; with a
+        narrow field of view (a Livox sees ~70 deg) the polar context's yaw and the
+        bird's-eye view's x/y peak can both be wrong where no motion at all is close enough.
+        """
+        found = self.hypotheses(query, match)
+        zero = [Hypothesis(h.yaw, 0.0, 0.0, 0.0).matrix() for h in found[:1]]
+        return [h.matrix() for h in found] + zero + [np.eye(4)]
 
     def hypotheses(self, query: PreparedCloud, match: PreparedCloud) -> list[Hypothesis]:
         """The ``registrations`` best initial guesses (yaw from the polar contexts, x/y from the BEV)."""
@@ -145,20 +169,31 @@ class GeometricVerifier:
         found.sort(key=lambda h: -h.score)
         return found[: cfg.registrations]
 
-    def _register(self, query: PreparedCloud, match: PreparedCloud, T0: np.ndarray) -> _Registered:
+    def _coarse(self, query: PreparedCloud, match: PreparedCloud, T0: np.ndarray) -> tuple[float, np.ndarray,
+                                                                                           np.ndarray]:
+        """(overlap of the full clouds at the result, pose, start) of a registration of the coarse clouds from ``T0``."""
         cfg = self.config
-        common = dict(registration_type=cfg.registration, num_threads=cfg.num_threads,
-                      max_iterations=cfg.max_iterations)
-        coarse = small_gicp.align(match.cloud, query.cloud, match.tree, init_T_target_source=T0,
-                                  max_correspondence_distance=cfg.coarse_distance, **common)
-        fine = small_gicp.align(match.cloud, query.cloud, match.tree, init_T_target_source=coarse.T_target_source,
-                                max_correspondence_distance=cfg.fine_distance, **common)
+        assert query.coarse is not None and match.coarse is not None
+        r = small_gicp.align(match.coarse, query.coarse, match.coarse_tree, init_T_target_source=T0,
+                             registration_type=cfg.registration, num_threads=cfg.num_threads,
+                             max_iterations=cfg.coarse_iterations, max_correspondence_distance=cfg.coarse_distance)
+        T = np.asarray(r.T_target_source, np.float64)
+        if not np.isfinite(T).all():
+            return -1.0, T0, T0
+        return self._overlap(query, match, T, stride=_COARSE_STRIDE)[0], T, T0
+
+    def _fine(self, query: PreparedCloud, match: PreparedCloud, T: np.ndarray, T0: np.ndarray) -> _Registered:
+        cfg = self.config
+        fine = small_gicp.align(match.cloud, query.cloud, match.tree, init_T_target_source=T,
+                                registration_type=cfg.registration, num_threads=cfg.num_threads,
+                                max_iterations=cfg.max_iterations, max_correspondence_distance=cfg.fine_distance)
         T = np.asarray(fine.T_target_source, np.float64)
-        fitness, rmse = self._overlap(query, match, T)
+        fitness, rmse = self._overlap(query, match, T) if np.isfinite(T).all() else (0.0, math.inf)
         return _Registered(T, fitness, rmse, np.asarray(fine.H, np.float64), float(fine.error), int(fine.num_inliers),
                            T0)
 
-    def _overlap(self, query: PreparedCloud, match: PreparedCloud, T: np.ndarray) -> tuple[float, float]:
+    def _overlap(self, query: PreparedCloud, match: PreparedCloud, T: np.ndarray, *, stride: int = 1
+                 ) -> tuple[float, float]:
         """(overlap, RMSE) after alignment; overlap = the smaller of both directions' inlier shares.
 
         A point is an inlier when its nearest neighbour in the other cloud is within
@@ -167,18 +202,41 @@ class GeometricVerifier:
         the point-to-plane RMSE of the query's inliers.
         """
         inv = np.linalg.inv(T)
-        share_q, d_q = _inliers(query.xyz @ T[:3, :3].T + T[:3, 3], match, self.config)
-        share_m, _ = _inliers(match.xyz @ inv[:3, :3].T + inv[:3, 3], query, self.config)
+        q, m = query.xyz[::stride], match.xyz[::stride]  # stride > 1: an estimate, for ranking the starts
+        share_q, d_q = _inliers(q @ T[:3, :3].T + T[:3, 3], match, self.config)
+        share_m, _ = _inliers(m @ inv[:3, :3].T + inv[:3, 3], query, self.config)
         rmse = float(np.sqrt(np.mean(d_q ** 2))) if len(d_q) else math.inf
         return min(share_q, share_m), rmse
 
-    def _judge(self, results: list[_Registered]) -> Verification:
+    def _constraint(self, T: np.ndarray, query: PreparedCloud, match: PreparedCloud) -> float:
+        """How well the aligned geometry pins down all six degrees of freedom, 0 (degenerate) .. 1/3.
+
+        Point-to-plane analysis over the query's inliers: with n the match neighbour's
+        normal and p the point (centred on the inliers' centroid, scaled by their RMS
+        radius), the smallest eigenvalue of mean(n n^T) (translation) and of
+        mean((p x n)(p x n)^T) (rotation). A plane leaves a translation free, a sphere
+        shell or a cylinder a rotation: both give ~0.
+        """
         cfg = self.config
-        best = max(results, key=lambda r: r.fitness)
+        points = query.xyz @ T[:3, :3].T + T[:3, 3]
+        idx, d2 = match.tree.batch_nearest_neighbor_search(points, num_threads=cfg.num_threads)
+        idx, d2 = np.asarray(idx, np.int64), np.asarray(d2, np.float64)
+        near = (idx >= 0) & (d2 <= cfg.inlier_distance ** 2)
+        if near.sum() < 6:
+            return 0.0
+        n = match.normals[idx[near]]
+        p = points[near] - points[near].mean(axis=0)
+        p /= max(float(np.sqrt((p ** 2).sum(axis=1).mean())), 1e-9)
+        pn = np.cross(p, n)
+        return float(min(np.linalg.eigvalsh(n.T @ n / len(n)).min(), np.linalg.eigvalsh(pn.T @ pn / len(n)).min()))
+
+    def _judge(self, best: _Registered, rivals: list[np.ndarray], query: PreparedCloud, match: PreparedCloud
+               ) -> Verification:
+        cfg = self.config
         delta = np.linalg.inv(best.initial) @ best.T
         correction_m = float(np.linalg.norm(delta[:3, 3]))
         correction_deg = _angle_deg(delta[:3, :3])
-        constraint = _constraint(best.H, best.inliers)
+        constraint = self._constraint(best.T, query, match)
         covariance = self._covariance(best)
         common = dict(match_T_query=best.T, fitness=best.fitness, rmse=best.rmse, covariance=covariance,
                       correction_m=correction_m, correction_deg=correction_deg, constraint=constraint,
@@ -194,8 +252,8 @@ class GeometricVerifier:
             reason = "large correction"
         elif constraint < cfg.min_constraint or not np.isfinite(covariance).all():
             reason = "degenerate"
-        elif any(r is not best and r.fitness >= best.fitness - cfg.ambiguity_margin
-                 and np.linalg.norm(r.T[:3, 3] - best.T[:3, 3]) > cfg.ambiguity_m for r in results):
+        elif cfg.ambiguity_margin > 0 and any(np.linalg.norm(T[:3, 3] - best.T[:3, 3]) > cfg.ambiguity_m
+                                              for T in rivals):
             reason = "ambiguous"
         return Verification(reason == ACCEPTED, reason, **common)
 
@@ -208,7 +266,9 @@ class GeometricVerifier:
             return np.full((6, 6), np.nan)
         factor = 2.0 * r.error / max(3 * r.inliers - 6, 1)
         cov = cov * factor * cfg.covariance_inflation
-        cov = cov[np.ix_(_ROS_ORDER, _ROS_ORDER)]
+        cov = cov[np.ix_(_ROS_ORDER, _ROS_ORDER)]  # small_gicp perturbs on the right (query frame) ...
+        J = np.kron(np.eye(2), r.T[:3, :3])  # ... rotate both blocks into the match frame
+        cov = J @ cov @ J.T
         floor = np.array([cfg.min_sigma_m] * 3 + [math.radians(cfg.min_sigma_deg)] * 3) ** 2
         sigma2 = np.diag(cov).copy()
         bump = np.maximum(floor - sigma2, 0.0)
@@ -237,12 +297,20 @@ def _angle_deg(R: np.ndarray) -> float:
     return math.degrees(math.acos(float(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
 
 
-def _constraint(H: np.ndarray, inliers: int) -> float:
-    """Smallest eigenvalue of the per-inlier Hessian's rotation and translation blocks."""
-    if inliers <= 0 or not np.isfinite(H).all():
-        return 0.0
-    Hn = H / inliers
-    return float(min(np.linalg.eigvalsh(Hn[:3, :3]).min(), np.linalg.eigvalsh(Hn[3:, 3:]).min()))
+def _rigid(guess: object) -> np.ndarray:
+    """A 4 x 4 rigid transform, or VerificationError naming what is wrong with it."""
+    try:
+        T = np.asarray(guess, np.float64)
+    except (TypeError, ValueError) as err:
+        raise VerificationError(f"initial_guess {guess!r} is not a 4 x 4 array of numbers") from err
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise VerificationError(f"initial_guess of shape {T.shape} is not a finite 4 x 4 transform")
+    R = T[:3, :3]
+    if (not np.allclose(R.T @ R, np.eye(3), atol=1e-4) or np.linalg.det(R) <= 0
+            or not np.allclose(T[3], (0.0, 0.0, 0.0, 1.0))):
+        raise VerificationError("initial_guess is not a rigid transform (rotation block not orthonormal with "
+                                "determinant +1, or last row not 0 0 0 1)")
+    return T
 
 
 def _replace_seconds(v: Verification, seconds: float) -> Verification:
