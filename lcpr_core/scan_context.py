@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import InputShapeError
+from .points import finite_xyz
 
 __all__ = [
     "RING_KEYS", "ScanContextConfig", "ScanContextMatch", "ScanContextMatcher", "ScanContextResult",
@@ -73,11 +74,7 @@ def scan_context(points: np.ndarray, *, config: ScanContextConfig | None = None)
     Heights below the ground (z + lidar_height < 0) count as 0. Non-finite points are dropped.
     """
     cfg = config if config is not None else ScanContextConfig()
-    pts = np.asarray(points)
-    if pts.ndim != 2 or pts.shape[1] < 3:
-        raise InputShapeError(f"points have shape {pts.shape}; expected N x 3 or more columns (x, y, z, ...)")
-    xyz = pts[:, :3].astype(np.float64)
-    xyz = xyz[np.isfinite(xyz).all(axis=1)]
+    xyz = finite_xyz(points)
     rng = np.hypot(xyz[:, 0], xyz[:, 1])
     keep = (rng >= cfg.min_range) & (rng < cfg.max_range)
     xyz, rng = xyz[keep], rng[keep]

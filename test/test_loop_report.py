@@ -16,17 +16,10 @@ from lcpr_core.loop_report import (
     score_loops,
 )
 from lcpr_core.posegraph import DriftModel, lidar_to_body
+from trajectory_fixtures import pose, square_laps
 
 # 10 cm, 0.5 deg roll/pitch, 1 deg yaw (x, y, z, roll, pitch, yaw)
 LOOP_COV = np.diag([0.1**2, 0.1**2, 0.05**2, math.radians(0.5) ** 2, math.radians(0.5) ** 2, math.radians(1.0) ** 2])
-
-
-def pose(x: float = 0.0, y: float = 0.0, z: float = 0.0, *, yaw: float = 0.0) -> np.ndarray:
-    c, s = math.cos(math.radians(yaw)), math.sin(math.radians(yaw))
-    out = np.eye(4)
-    out[:2, :2] = [[c, -s], [s, c]]
-    out[:3, 3] = (x, y, z)
-    return out
 
 
 def rel(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -125,21 +118,6 @@ def test_the_covariance_follows_the_pose_from_the_lidar_to_the_body_frame() -> N
 
 
 # ------------------------------------------------------------------ the pose-graph proof
-def square_laps(*, side: float = 25.0, step: float = 2.0, laps: int = 4) -> tuple[np.ndarray, int]:
-    """Counter-clockwise laps of a square from (0, 0) facing +x: world_T_body (N, 4, 4), poses per lap."""
-    per_lap = int(round(4 * side / step))
-    corners = [(0.0, 0.0), (side, 0.0), (side, side), (0.0, side)]
-    heading = [(1.0, 0.0), (0.0, 1.0), (-1.0, 0.0), (0.0, -1.0)]
-    poses = []
-    for i in range(laps * per_lap + 1):
-        s = (i * step) % (4 * side)
-        k = min(int(s // side), 3)
-        u = s - k * side
-        (cx, cy), (dx, dy) = corners[k], heading[k]
-        poses.append(pose(cx + dx * u, cy + dy * u, yaw=90.0 * k))
-    return np.stack(poses), per_lap
-
-
 def test_true_loops_bring_the_drifted_square_back_to_the_truth(tmp_path: Path) -> None:
     pytest.importorskip("gtsam")
     truth, per_lap = square_laps()

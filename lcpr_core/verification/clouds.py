@@ -16,6 +16,7 @@ import small_gicp
 
 from ..errors import VerificationError
 from ..growable import GrowableArray
+from ..points import finite_xyz
 from .config import CloudConfig
 
 SCALE = 0.01  # m per int16 unit
@@ -31,11 +32,7 @@ def compact_cloud(points: np.ndarray, config: CloudConfig | None = None) -> np.n
     registration code uses the stored cloud as it is.
     """
     cfg = config if config is not None else CloudConfig()
-    pts = np.asarray(points)
-    if pts.ndim != 2 or pts.shape[1] < 3:
-        raise VerificationError(f"points have shape {pts.shape}; expected N x 3 or more columns (x, y, z, ...)")
-    xyz = pts[:, :3].astype(np.float64)
-    xyz = xyz[np.isfinite(xyz).all(axis=1)]
+    xyz = finite_xyz(points, error=VerificationError)
     dist = np.linalg.norm(xyz, axis=1)
     xyz = xyz[(dist >= cfg.min_range) & (dist <= cfg.max_range)]
     if len(xyz) == 0:

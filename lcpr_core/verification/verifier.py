@@ -24,6 +24,7 @@ import numpy as np
 import small_gicp
 
 from ..errors import VerificationError
+from ..points import finite_xyz
 from .clouds import compact_cloud
 from .config import VerifierConfig
 from .initial import BevMatcher, Hypothesis, polar_context, yaw_candidates
@@ -124,8 +125,8 @@ class GeometricVerifier:
     def verify(self, query_xyz: np.ndarray, match_xyz: np.ndarray, initial_guess: np.ndarray | None = None
                ) -> Verification:
         """Verify two raw clouds (N x (>=3), each in its own LiDAR frame); see the module docstring."""
-        q, m = (self.prepare(self.compact(_points(p, name))) for p, name in ((query_xyz, "query_xyz"),
-                                                                              (match_xyz, "match_xyz")))
+        q, m = (self.prepare(self.compact(finite_xyz(p, error=VerificationError, name=name)))
+                for p, name in ((query_xyz, "query_xyz"), (match_xyz, "match_xyz")))
         return self.verify_prepared(q, m, initial_guess=initial_guess)
 
     def verify_prepared(self, query: PreparedCloud, match: PreparedCloud, *,
@@ -273,14 +274,6 @@ class GeometricVerifier:
         sigma2 = np.diag(cov).copy()
         bump = np.maximum(floor - sigma2, 0.0)
         return cov + np.diag(bump)
-
-
-def _points(points: np.ndarray, name: str) -> np.ndarray:
-    arr = np.asarray(points)
-    if arr.ndim != 2 or arr.shape[1] < 3 or arr.dtype.kind not in "fiu":
-        raise VerificationError(f"{name} has shape {arr.shape} and dtype {arr.dtype}; expected an N x 3 (or more "
-                                "columns) array of numbers in its LiDAR frame")
-    return arr
 
 
 def _inliers(points: np.ndarray, target: PreparedCloud, cfg: VerifierConfig) -> tuple[float, np.ndarray]:
