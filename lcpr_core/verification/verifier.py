@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import small_gicp
@@ -68,13 +68,14 @@ class Verification:
     accepted: bool
     reason: str
     match_T_query: np.ndarray  # 4 x 4 float64 (the best registration, also when rejected; identity if none ran)
-    fitness: float  # overlap: the smaller share of either cloud's points within inlier_distance of the other
+    fitness: float  # overlap: the mean of both clouds' inlier shares (see _overlap)
     rmse: float = math.inf  # m, of the query's inliers
     covariance: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.nan))
     correction_m: float = math.nan  # how far registration moved from its initial guess
     correction_deg: float = math.nan
     constraint: float = 0.0  # smallest eigenvalue of the per-inlier GICP Hessian (well-posedness)
     initial: np.ndarray = field(default_factory=lambda: np.eye(4))  # the initial guess the result came from
+    coarse_fitness: float = 0.0  # overlap estimated at the best coarse pose (the early-reject test)
     seconds: float = 0.0
 
     @property
@@ -144,11 +145,11 @@ class GeometricVerifier:
         early = coarse[0][0]
         if early < cfg.early_reject * cfg.min_fitness:  # far from acceptable already: skip the fine stage
             return Verification(False, "low overlap", coarse[0][1], early, initial=coarse[0][2],
-                                seconds=time.perf_counter() - tic)
+                                coarse_fitness=early, seconds=time.perf_counter() - tic)
         best = self._fine(query, match, coarse[0][1], coarse[0][2])
         rivals = [T for score, T, _ in coarse[1:] if score >= coarse[0][0] - cfg.ambiguity_margin]
         verdict = self._judge(best, rivals, query, match)
-        return _replace_seconds(verdict, time.perf_counter() - tic)
+        return replace(verdict, coarse_fitness=early, seconds=time.perf_counter() - tic)
 
     def starts(self, query: PreparedCloud, match: PreparedCloud) -> list[np.ndarray]:
         """Initial guesses: the best BEV hypotheses, the best yaw with no offset, and identity.
@@ -195,7 +196,7 @@ class GeometricVerifier:
 
     def _overlap(self, query: PreparedCloud, match: PreparedCloud, T: np.ndarray, *, stride: int = 1
                  ) -> tuple[float, float]:
-        """(overlap, RMSE) after alignment; overlap = the smaller of both directions' inlier shares.
+        """(overlap, RMSE) after alignment; overlap = the mean of both directions' inlier shares.
 
         A point is an inlier when its nearest neighbour in the other cloud is within
         ``inlier_distance`` and it lies within ``plane_distance`` of that neighbour's local
@@ -207,7 +208,7 @@ class GeometricVerifier:
         share_q, d_q = _inliers(q @ T[:3, :3].T + T[:3, 3], match, self.config)
         share_m, _ = _inliers(m @ inv[:3, :3].T + inv[:3, 3], query, self.config)
         rmse = float(np.sqrt(np.mean(d_q ** 2))) if len(d_q) else math.inf
-        return min(share_q, share_m), rmse
+        return 0.5 * (share_q + share_m), rmse
 
     def _constraint(self, T: np.ndarray, query: PreparedCloud, match: PreparedCloud) -> float:
         """How well the aligned geometry pins down all six degrees of freedom, 0 (degenerate) .. 1/3.
@@ -304,8 +305,3 @@ def _rigid(guess: object) -> np.ndarray:
         raise VerificationError("initial_guess is not a rigid transform (rotation block not orthonormal with "
                                 "determinant +1, or last row not 0 0 0 1)")
     return T
-
-
-def _replace_seconds(v: Verification, seconds: float) -> Verification:
-    from dataclasses import replace
-    return replace(v, seconds=seconds)
