@@ -34,7 +34,7 @@ setup(
     extras_require={
         # ROS 2 from PyPI for machines without a ROS installation; a vehicle with
         # ROS 2 Jazzy from apt uses its system rclpy instead.
-        "ros": ["ros-jazzy-rclpy[fastrtps]==7.1.6", "ros-jazzy-common-interfaces==5.3.6", "ros-jazzy-std-srvs==5.3.6"],
+        "ros": ["ros-rclpy", "ros-common-interfaces", "ros-std-srvs", "ros-rmw-fastrtps-cpp"],
         # The pose-graph proof in lcpr_eval and the demo (optional: verification itself does not need it).
         "posegraph": ["gtsam>=4.2"],
         # The registration comparison in benchmarks/registration_compare.py.
