@@ -87,9 +87,13 @@ class LoopScore:
     yaw_err_median: float | None = None  # deg
     yaw_err_p95: float | None = None
     posed: int = 0  # correct loops with a pose and ground truth: the pose-error sample
+    wrong_with_true_pose: int = 0  # loops beyond radius whose relative pose is within POSE_OK of the truth
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
+
+
+POSE_OK_M, POSE_OK_DEG = 0.3, 2.0  # a loop whose relative pose is this close to the truth is a valid constraint
 
 
 def _index(value: object, n: int, what: str) -> int:
@@ -172,10 +176,12 @@ def score_loops(
         stats = {"trans_err_median": float(t50), "trans_err_p95": float(t95),
                  "yaw_err_median": float(y50), "yaw_err_p95": float(y95)}
     n_correct = int(correct.sum())
+    true_pose = sum(1 for e, ok in zip(errors, correct)
+                    if not ok and e is not None and e[0] <= POSE_OK_M and e[1] <= POSE_OK_DEG)
     return LoopScore(
         loops=len(loops), correct=n_correct, precision=n_correct / len(loops) if loops else None,
         recall=closed / true_revisits if true_revisits else None, true_revisits=true_revisits, closed=closed,
-        posed=len(measured), **stats,
+        posed=len(measured), wrong_with_true_pose=true_pose, **stats,
     )
 
 

@@ -268,8 +268,11 @@ def report(args, truth: Truth, out, detector: dict, inputs: dict, replay_s: floa
     print(f"  weights:            {weights}")
     print(f"  true revisits:      {n_true} keyframes have an earlier keyframe within {RADIUS:.0f} m "
           f"and >= {MIN_GAP:.0f} s older")
+    wrong = verified.loops - verified.correct
+    valid = (f" (beyond {RADIUS:.0f} m, yet {verified.wrong_with_true_pose} with a relative pose within 0.3 m / 2 deg "
+             "of the truth: a valid constraint)") if verified.wrong_with_true_pose else ""
     print(f"  loops published:    {verified.loops} on ~/loop_closure ({mode}), {verified.correct} correct, "
-          f"{verified.loops - verified.correct} wrong")
+          f"{wrong} wrong{valid}")
     print(f"  precision:          {_f(verified.precision)}   (retrieval alone, nearest descriptor under "
           f"{BUNDLED_MAX_DISTANCE}: {_f(baseline.precision)})")
     print(f"  recall:             {_f(verified.recall)} ({verified.closed} of {n_true} revisiting keyframes closed; "

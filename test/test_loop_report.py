@@ -68,6 +68,15 @@ def test_score_loops_gives_the_hand_computed_precision_recall_and_pose_errors() 
                        radius=9.0).correct == 3
 
 
+def test_a_loop_beyond_the_radius_with_the_true_relative_pose_is_counted_as_a_valid_constraint() -> None:
+    positions, world_T_lidar, has_revisit = hand_drive()
+    true_far = PublishedLoop(5, 2, rel(world_T_lidar[2], world_T_lidar[5]))  # 30 m apart, pose exact
+    wrong_far = PublishedLoop(5, 1, off_by(rel(world_T_lidar[1], world_T_lidar[5]), (1.0, 0.0, 0.0), 0.0))
+    score = score_loops([true_far, wrong_far], positions=positions, world_T_lidar=world_T_lidar,
+                        has_revisit=has_revisit, radius=5.0)
+    assert (score.correct, score.wrong_with_true_pose) == (0, 1)
+
+
 def test_score_loops_without_loops_or_revisits_and_with_unknown_positions() -> None:
     positions, world_T_lidar, has_revisit = hand_drive()
     empty = score_loops([], positions=positions, world_T_lidar=world_T_lidar, has_revisit=has_revisit, radius=5.0)
