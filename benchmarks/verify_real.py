@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from lcpr_core.posegraph import relative_pose_error, rotation_error_deg
+from lcpr_core.posegraph import relative_pose_error, rotation_angle_deg, rotation_error_deg
 from lcpr_core.scan_context import ScanContextConfig, _all_shifts, scan_context
 from lcpr_core.verification import GeometricVerifier, VerifierConfig
 from msg_tools.convert.scan_folder import ScanFolder
@@ -42,16 +42,10 @@ FAR_M = 20.0
 POSE_OK_M, POSE_OK_DEG = 0.3, 2.0
 
 
-def rotation_deg(R: np.ndarray) -> np.ndarray:
-    """Rotation angle (deg) of ... x 3 x 3 matrices."""
-    tr = np.trace(R, axis1=-2, axis2=-1)
-    return np.degrees(np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0)))
-
-
 def true_pairs(seq: ScanFolder) -> np.ndarray:
     pairs = revisit_pairs(seq.poses[:, :3, 3], seq.stamps, radius=TRUE_RADIUS, min_time_gap=TRUE_GAP_S)
     rel = np.einsum("nji,njk->nik", seq.poses[pairs[:, 1], :3, :3], seq.poses[pairs[:, 0], :3, :3])
-    return pairs[rotation_deg(rel) < TRUE_ROT_DEG]
+    return pairs[rotation_angle_deg(rel) < TRUE_ROT_DEG]
 
 
 def far_pairs(seq: ScanFolder, *, sample: int, hard: int, seed: int) -> tuple[np.ndarray, np.ndarray]:

@@ -321,12 +321,17 @@ def yaw_deg(pose: np.ndarray) -> float:
     return math.degrees(math.atan2(m[1, 0], m[0, 0]))
 
 
+def rotation_angle_deg(rotation: np.ndarray) -> np.ndarray:
+    """Angle (deg, 0..180) of ... x 3 x 3 rotation matrices (a float for one): |log(R)|, no checks."""
+    r = np.asarray(rotation, np.float64)
+    return np.degrees(np.arccos(np.clip((np.trace(r, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)))
+
+
 def rotation_error_deg(estimate_T: np.ndarray, truth_T: np.ndarray) -> float:
     """Angle (deg, 0..180) of the rotation between two (4, 4) poses: |log(R_truth^T R_estimate)|."""
     est = _check_poses(estimate_T, "estimate_T", single=True)
     ref = _check_poses(truth_T, "truth_T", single=True)
-    r = ref[:3, :3].T @ est[:3, :3]
-    return math.degrees(math.acos(float(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0))))
+    return float(rotation_angle_deg(ref[:3, :3].T @ est[:3, :3]))
 
 
 def relative_pose_error(estimate_T: np.ndarray, truth_T: np.ndarray) -> tuple[float, float]:

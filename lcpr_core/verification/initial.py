@@ -1,7 +1,8 @@
 """Initial guesses for registration: LCPR is yaw-invariant and says nothing about the relative pose.
 
 1. yaw: the Scan Context column shifts that best align the two clouds (a turn of the
-   sensor rolls the polar grid's columns), the ``count`` best local minima;
+   sensor rolls the polar grid's columns), the ``count`` best peaks of the summed
+   column cosine;
 2. x/y: for each yaw, the peak of the cross-correlation of two bird's-eye views whose
    cells hold the height span of the points in them (walls, poles and trees count;
    flat ground, whose rings follow the sensor, does not).
@@ -13,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..preprocess.range_image import rotate_z
 from ..scan_context import ScanContextConfig, scan_context
 
 SC_CONFIG = ScanContextConfig(num_rings=20, num_sectors=72, max_range=80.0, lidar_height=3.0)
@@ -89,14 +91,6 @@ def bev_image(xyz: np.ndarray, *, cell: float, extent: float) -> np.ndarray:
     return np.minimum(span, 3.0).reshape(size, size).astype(np.float32)
 
 
-def rotate_z(xyz: np.ndarray, yaw: float) -> np.ndarray:
-    c, s = math.cos(yaw), math.sin(yaw)
-    out = np.asarray(xyz, np.float64).copy()
-    out[:, 0] = c * xyz[:, 0] - s * xyz[:, 1]
-    out[:, 1] = s * xyz[:, 0] + c * xyz[:, 1]
-    return out
-
-
 class BevMatcher:
     """x/y offset of a rotated query view against one match view by FFT cross-correlation."""
 
@@ -114,7 +108,7 @@ class BevMatcher:
 
     def locate(self, query_xyz: np.ndarray, yaw: float) -> Hypothesis:
         """Best x/y for ``yaw``: where match(x) ~ rotated query(x - t)."""
-        image = bev_image(rotate_z(query_xyz, yaw), cell=self.cell, extent=self.extent)
+        image = bev_image(rotate_z(query_xyz, math.degrees(yaw)), cell=self.cell, extent=self.extent)
         norm = float(np.linalg.norm(image)) * self._norm
         if norm <= 0.0:
             return Hypothesis(yaw, 0.0, 0.0, 0.0)

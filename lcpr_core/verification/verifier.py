@@ -25,6 +25,7 @@ import small_gicp
 
 from ..errors import VerificationError
 from ..points import finite_xyz
+from ..posegraph import rotation_angle_deg
 from .clouds import compact_cloud
 from .config import VerifierConfig
 from .initial import BevMatcher, Hypothesis, polar_context, yaw_candidates
@@ -73,7 +74,7 @@ class Verification:
     covariance: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.nan))
     correction_m: float = math.nan  # how far registration moved from its initial guess
     correction_deg: float = math.nan
-    constraint: float = 0.0  # smallest eigenvalue of the per-inlier GICP Hessian (well-posedness)
+    constraint: float = 0.0  # point-to-plane observability of the inliers, 0 (degenerate) .. 1/3 (_constraint)
     initial: np.ndarray = field(default_factory=lambda: np.eye(4))  # the initial guess the result came from
     coarse_fitness: float = 0.0  # overlap estimated at the best coarse pose (the early-reject test)
     seconds: float = 0.0
@@ -93,6 +94,7 @@ class _Registered:
     error: float
     inliers: int
     initial: np.ndarray
+    constraint: float  # see _constraint
 
 
 class GeometricVerifier:
@@ -148,7 +150,7 @@ class GeometricVerifier:
                                 coarse_fitness=early, seconds=time.perf_counter() - tic)
         best = self._fine(query, match, coarse[0][1], coarse[0][2])
         rivals = [T for score, T, _ in coarse[1:] if score >= coarse[0][0] - cfg.ambiguity_margin]
-        verdict = self._judge(best, rivals, query, match)
+        verdict = self._judge(best, rivals)
         return replace(verdict, coarse_fitness=early, seconds=time.perf_counter() - tic)
 
     def starts(self, query: PreparedCloud, match: PreparedCloud) -> list[np.ndarray]:
@@ -190,55 +192,42 @@ class GeometricVerifier:
                                 registration_type=cfg.registration, num_threads=cfg.num_threads,
                                 max_iterations=cfg.max_iterations, max_correspondence_distance=cfg.fine_distance)
         T = np.asarray(fine.T_target_source, np.float64)
-        fitness, rmse = self._overlap(query, match, T) if np.isfinite(T).all() else (0.0, math.inf)
+        fitness, rmse, constraint = 0.0, math.inf, 0.0
+        if np.isfinite(T).all():
+            q_in_m = _transform(query.xyz, T)
+            idx, near = _near(q_in_m, match, cfg)  # one search: the overlap and the constraint share it
+            fitness, rmse = self._overlap(query, match, T, query_side=(q_in_m, idx, near))
+            constraint = _constraint(q_in_m[near], match.normals[idx[near]])
         return _Registered(T, fitness, rmse, np.asarray(fine.H, np.float64), float(fine.error), int(fine.num_inliers),
-                           T0)
+                           T0, constraint)
 
-    def _overlap(self, query: PreparedCloud, match: PreparedCloud, T: np.ndarray, *, stride: int = 1
-                 ) -> tuple[float, float]:
+    def _overlap(self, query: PreparedCloud, match: PreparedCloud, T: np.ndarray, *, stride: int = 1,
+                 query_side: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> tuple[float, float]:
         """(overlap, RMSE) after alignment; overlap = the mean of both directions' inlier shares.
 
         A point is an inlier when its nearest neighbour in the other cloud is within
         ``inlier_distance`` and it lies within ``plane_distance`` of that neighbour's local
         plane: independent of how densely either sensor sampled the surface. RMSE is
-        the point-to-plane RMSE of the query's inliers.
+        the point-to-plane RMSE of the query's inliers. ``stride`` > 1 estimates it from
+        every stride-th point (for ranking the starts); ``query_side`` passes the query's
+        points in the match frame and their neighbour search when the caller has them.
         """
-        inv = np.linalg.inv(T)
-        q, m = query.xyz[::stride], match.xyz[::stride]  # stride > 1: an estimate, for ranking the starts
-        share_q, d_q = _inliers(q @ T[:3, :3].T + T[:3, 3], match, self.config)
-        share_m, _ = _inliers(m @ inv[:3, :3].T + inv[:3, 3], query, self.config)
+        cfg = self.config
+        if query_side is None:
+            q_in_m = _transform(query.xyz[::stride], T)
+            query_side = (q_in_m, *_near(q_in_m, match, cfg))
+        m_in_q = _transform(match.xyz[::stride], np.linalg.inv(T))
+        share_q, d_q = _inliers(*query_side, match, cfg)
+        share_m, _ = _inliers(m_in_q, *_near(m_in_q, query, cfg), query, cfg)
         rmse = float(np.sqrt(np.mean(d_q ** 2))) if len(d_q) else math.inf
         return 0.5 * (share_q + share_m), rmse
 
-    def _constraint(self, T: np.ndarray, query: PreparedCloud, match: PreparedCloud) -> float:
-        """How well the aligned geometry pins down all six degrees of freedom, 0 (degenerate) .. 1/3.
-
-        Point-to-plane analysis over the query's inliers: with n the match neighbour's
-        normal and p the point (centred on the inliers' centroid, scaled by their RMS
-        radius), the smallest eigenvalue of mean(n n^T) (translation) and of
-        mean((p x n)(p x n)^T) (rotation). A plane leaves a translation free, a sphere
-        shell or a cylinder a rotation: both give ~0.
-        """
-        cfg = self.config
-        points = query.xyz @ T[:3, :3].T + T[:3, 3]
-        idx, d2 = match.tree.batch_nearest_neighbor_search(points, num_threads=cfg.num_threads)
-        idx, d2 = np.asarray(idx, np.int64), np.asarray(d2, np.float64)
-        near = (idx >= 0) & (d2 <= cfg.inlier_distance ** 2)
-        if near.sum() < 6:
-            return 0.0
-        n = match.normals[idx[near]]
-        p = points[near] - points[near].mean(axis=0)
-        p /= max(float(np.sqrt((p ** 2).sum(axis=1).mean())), 1e-9)
-        pn = np.cross(p, n)
-        return float(min(np.linalg.eigvalsh(n.T @ n / len(n)).min(), np.linalg.eigvalsh(pn.T @ pn / len(n)).min()))
-
-    def _judge(self, best: _Registered, rivals: list[np.ndarray], query: PreparedCloud, match: PreparedCloud
-               ) -> Verification:
+    def _judge(self, best: _Registered, rivals: list[np.ndarray]) -> Verification:
         cfg = self.config
         delta = np.linalg.inv(best.initial) @ best.T
         correction_m = float(np.linalg.norm(delta[:3, 3]))
-        correction_deg = _angle_deg(delta[:3, :3])
-        constraint = self._constraint(best.T, query, match)
+        correction_deg = float(rotation_angle_deg(delta[:3, :3]))
+        constraint = best.constraint
         covariance = self._covariance(best)
         common = dict(match_T_query=best.T, fitness=best.fitness, rmse=best.rmse, covariance=covariance,
                       correction_m=correction_m, correction_deg=correction_deg, constraint=constraint,
@@ -277,18 +266,40 @@ class GeometricVerifier:
         return cov + np.diag(bump)
 
 
-def _inliers(points: np.ndarray, target: PreparedCloud, cfg: VerifierConfig) -> tuple[float, np.ndarray]:
-    """(share of ``points`` that are inliers of ``target``, their point-to-plane distances)."""
+def _transform(points: np.ndarray, T: np.ndarray) -> np.ndarray:
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def _near(points: np.ndarray, target: PreparedCloud, cfg: VerifierConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(nearest target row of each point, whether it lies within ``inlier_distance``)."""
     idx, d2 = target.tree.batch_nearest_neighbor_search(points, num_threads=cfg.num_threads)
     idx, d2 = np.asarray(idx, np.int64), np.asarray(d2, np.float64)
-    near = (idx >= 0) & (d2 <= cfg.inlier_distance ** 2)
+    return idx, (idx >= 0) & (d2 <= cfg.inlier_distance ** 2)
+
+
+def _inliers(points: np.ndarray, idx: np.ndarray, near: np.ndarray, target: PreparedCloud, cfg: VerifierConfig
+             ) -> tuple[float, np.ndarray]:
+    """(share of ``points`` that are inliers of ``target``, their point-to-plane distances)."""
     plane = np.abs(np.einsum("ij,ij->i", points[near] - target.xyz[idx[near]], target.normals[idx[near]]))
     good = plane <= cfg.plane_distance
     return float(good.sum()) / max(len(points), 1), plane[good]
 
 
-def _angle_deg(R: np.ndarray) -> float:
-    return math.degrees(math.acos(float(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+def _constraint(points: np.ndarray, normals: np.ndarray) -> float:
+    """How well aligned points and their neighbours' normals pin down all six degrees of freedom, 0 .. 1/3.
+
+    Point-to-plane analysis: with n the neighbour's normal and p the point (centred on
+    the points' centroid, scaled by their RMS radius), the smallest eigenvalue of
+    mean(n n^T) (translation) and of mean((p x n)(p x n)^T) (rotation). A plane leaves a
+    translation free, a sphere shell or a cylinder a rotation: both give ~0.
+    """
+    if len(points) < 6:
+        return 0.0
+    p = points - points.mean(axis=0)
+    p /= max(float(np.sqrt((p ** 2).sum(axis=1).mean())), 1e-9)
+    pn = np.cross(p, normals)
+    return float(min(np.linalg.eigvalsh(normals.T @ normals / len(normals)).min(),
+                     np.linalg.eigvalsh(pn.T @ pn / len(normals)).min()))
 
 
 def _rigid(guess: object) -> np.ndarray:
