@@ -49,7 +49,15 @@ from msg_tools.ground_truth import revisit_pairs
 
 from .atomic import atomic_path
 from .errors import InputShapeError
-from .loop_report import LoopScore, PoseGraphProof, PublishedLoop, loop_correct, loop_pose_errors, score_loops
+from .loop_report import (
+    LoopScore,
+    PoseGraphProof,
+    PublishedLoop,
+    fitness_sweep,
+    loop_correct,
+    loop_pose_errors,
+    score_loops,
+)
 from .metrics import PRResult, pr_sweep, precision_recall, recall_at_n
 
 __all__ = [
@@ -549,7 +557,7 @@ def evaluate_verified(
     correct = loop_correct(loops, gt.positions, gt.radius)
     positive = gt.has_loop.copy()
     positive[[q for q, ok in zip(queries, correct) if ok]] = True
-    pr = pr_sweep(-fit, correct, num_positives=int(positive.sum()), num_queries=len(gt.stamps)) if len(fit) else None
+    pr = fitness_sweep(fit, correct, num_positives=int(positive.sum()), num_queries=len(gt.stamps))
     return VerifiedLoops(name=name, score=score, pr=pr, loops=loops, fitness=fit, correct=correct,
                          pose_errors=tuple(loop_pose_errors(loops, world_T_lidar)))
 

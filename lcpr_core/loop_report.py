@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from .errors import InputShapeError
+from .metrics import PRResult, pr_sweep
 from .posegraph import (
     DriftModel,
     LoopConstraint,
@@ -50,7 +51,7 @@ from .posegraph import (
 
 __all__ = [
     "DEFAULT_LOOP_COVARIANCE", "LoopScore", "PoseGraphProof", "PublishedLoop", "covariance_lidar_to_body",
-    "loop_correct", "loop_pose_errors", "pose_graph_proof", "score_loops",
+    "fitness_sweep", "loop_correct", "loop_pose_errors", "pose_graph_proof", "score_loops",
 ]
 
 #: Covariance given to a loop that carries a pose but no covariance: 10 cm in x and y, 5 cm in z,
@@ -183,6 +184,19 @@ def score_loops(
         recall=closed / true_revisits if true_revisits else None, true_revisits=true_revisits, closed=closed,
         posed=len(measured), wrong_with_true_pose=true_pose, **stats,
     )
+
+
+def fitness_sweep(fitness: np.ndarray, correct: np.ndarray, *, num_positives: int, num_queries: int
+                  ) -> PRResult | None:
+    """Precision-recall of loops swept over their registration fitness (a loop counts when fitness >= t).
+
+    The sweep's thresholds are the negated fitness values (``pr_sweep`` accepts at or
+    below a threshold); None without loops.
+    """
+    fit = np.asarray(fitness, np.float64).reshape(-1)
+    if not len(fit):
+        return None
+    return pr_sweep(-fit, np.asarray(correct, bool), num_positives=num_positives, num_queries=num_queries)
 
 
 # ============================================================================ pose graph

@@ -33,13 +33,12 @@ import numpy as np
 from lcpr_core.atomic import write_bytes_atomic
 from lcpr_core.errors import LcprError
 from lcpr_core.evaluation import recall_at_full_precision
-from lcpr_core.loop_report import PublishedLoop, pose_graph_proof, score_loops
+from lcpr_core.loop_report import PublishedLoop, fitness_sweep, pose_graph_proof, score_loops
 from lcpr_core.posegraph import DriftModel
 from lcpr_core.metrics import pr_sweep
 from lcpr_core.metrics import plot_pr_curve
 from lcpr_core.pretrained import BUNDLED_MAX_DISTANCE, default_weights
 from msg_tools.frames import NUSCENES_TOPICS
-from msg_tools.geometry import quaternion_to_matrix
 from msg_tools.ground_truth import revisit_pairs
 
 RADIUS = 9.0  # m: a loop is correct when the matched keyframe is this close (the paper's threshold)
@@ -189,30 +188,13 @@ def _wait_until_quiet(listener, *, quiet_s: float, timeout: float) -> None:
         time.sleep(0.5)
 
 
-def _pose_of(row: dict[str, float]) -> np.ndarray | None:
-    """match_T_query of a ~/candidates row (None when it was not registered)."""
-    if "tx" not in row or not np.isfinite(row["tx"]):
-        return None
-    T = np.eye(4)
-    T[:3, :3] = quaternion_to_matrix(np.array([row["qx"], row["qy"], row["qz"], row["qw"]]))
-    T[:3, 3] = (row["tx"], row["ty"], row["tz"])
-    return T
+def published_loops(truth: Truth, loops: list[tuple[float, float]], rows: dict[tuple[float, float], dict[str, float]]
+                    ) -> list[PublishedLoop]:
+    """The loops on ~/loop_closure as keyframe indices, with the pose their ~/candidates rows carry."""
+    from .outputs import row_covariance, row_pose  # rclpy message types: imported once ROS is in use
 
-
-def _covariance_of(row: dict[str, float]) -> np.ndarray | None:
-    if "cov_0" not in row or not np.isfinite(row["cov_0"]):
-        return None
-    return np.array([row[f"cov_{i}"] for i in range(36)]).reshape(6, 6)
-
-
-def published_loops(truth: Truth, out) -> list[PublishedLoop]:
-    """The loops on ~/loop_closure as keyframe indices, with the pose the matching ~/candidates row carries."""
-    rows = {(r["query_stamp"], r["match_stamp"]): r for batch in out.candidates for r in batch}
-    loops = []
-    for q, m in out.loops:
-        row = rows.get((q, m), {})
-        loops.append(PublishedLoop(truth.index(q), truth.index(m), _pose_of(row), _covariance_of(row)))
-    return loops
+    return [PublishedLoop(truth.index(q), truth.index(m), row_pose(rows.get((q, m), {})),
+                          row_covariance(rows.get((q, m), {}))) for q, m in loops]
 
 
 def retrieval_only(truth: Truth, out, max_distance: float) -> list[PublishedLoop]:
@@ -231,7 +213,8 @@ def report(args, truth: Truth, out, detector: dict, inputs: dict, replay_s: floa
     positions = np.c_[truth.positions, np.zeros(len(truth.positions))]
     score = partial(score_loops, positions=positions, world_T_lidar=world_T_lidar, has_revisit=truth.has_revisit,
                     radius=RADIUS)
-    loops = published_loops(truth, out)
+    by_pair = {(r["query_stamp"], r["match_stamp"]): r for batch in out.candidates for r in batch}
+    loops = published_loops(truth, out.loops, by_pair)
     verified = score(loops)
     baseline = score(retrieval_only(truth, out, BUNDLED_MAX_DISTANCE))
     n_true = int(truth.has_revisit.sum())
@@ -245,12 +228,10 @@ def report(args, truth: Truth, out, detector: dict, inputs: dict, replay_s: floa
     ok = np.array([c for _, c in best.values()], bool)
     pr = pr_sweep(dist, ok, num_positives=n_true, num_queries=len(truth.stamps)) if len(dist) else None
     # verified: each published loop swept over its fitness (a loop needs fitness >= t)
-    fitness = {(r["query_stamp"], r["match_stamp"]): r.get("fitness", np.nan) for b in out.candidates for r in b}
-    v_score = np.array([1.0 - fitness.get((q, m), np.nan) for q, m in out.loops])
+    fitness = np.array([by_pair.get(loop, {}).get("fitness", np.nan) for loop in out.loops])
     v_ok = np.array([truth.correct(q, m) for q, m in out.loops], bool)
-    keep = np.isfinite(v_score)
-    pr_verified = (pr_sweep(v_score[keep], v_ok[keep], num_positives=n_true, num_queries=len(truth.stamps))
-                   if keep.any() else None)
+    keep = np.isfinite(fitness)
+    pr_verified = fitness_sweep(fitness[keep], v_ok[keep], num_positives=n_true, num_queries=len(truth.stamps))
     plot = args.out / "pr_curve.png"
     if pr is not None:
         plot_pr_curve(pr, plot, title="lcpr_node on the demo drive (top-1 descriptor distance)")
