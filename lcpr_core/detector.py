@@ -121,6 +121,7 @@ class Result:
     missing_cameras: tuple[int, ...] = ()
     timings: dict[str, float] = field(default_factory=dict)  # stage -> seconds
     verification: bool = True  # candidates were verified (the loop must be a verified one)
+    errors: list[str] = field(default_factory=list)  # why a candidate's verification "failed" (an exception)
 
     @property
     def loop(self) -> Candidate | None:
@@ -157,7 +158,6 @@ class LoopDetector:
         self._last_position: np.ndarray | None = None
         self.verifier = GeometricVerifier(config.verify)
         self._prepared: OrderedDict[int, PreparedCloud] = OrderedDict()
-        self.last_error: str | None = None  # the latest verification failure (counted as "failed")
 
     @property
     def session_keyframes(self) -> int:
@@ -206,15 +206,18 @@ class LoopDetector:
             self.map.clouds.add(int(new_id), compact)
             result.timings["compact"] = time.perf_counter() - tic
             tic = time.perf_counter()
-            result.candidates = self._verify(compact, result.candidates)
+            result.candidates = self._verify(compact, result.candidates, result.errors)
             result.timings["verify"] = time.perf_counter() - tic
         self._session_stamps.append(frame.stamp)
         if position is not None:
             self._last_position = position
         return result
 
-    def _verify(self, compact: np.ndarray, candidates: list[Candidate]) -> list[Candidate]:
-        """Each candidate with the verdict of registering the query cloud against the match's."""
+    def _verify(self, compact: np.ndarray, candidates: list[Candidate], errors: list[str]) -> list[Candidate]:
+        """Each candidate with the verdict of registering the query cloud against the match's.
+
+        A registration that raises makes that candidate "failed" and its cause is appended to ``errors``.
+        """
         if not candidates:
             return candidates
         query = self.verifier.prepare(compact)
@@ -228,7 +231,7 @@ class LoopDetector:
                 v = self.verifier.verify_prepared(query, match)
             except Exception as err:  # noqa: BLE001 - a bad pair must not cost the keyframe
                 v = Verification(False, "failed", np.eye(4), 0.0)
-                self.last_error = f"verification of {c.query_id} against {c.match_id}: {type(err).__name__}: {err}"
+                errors.append(f"verification of {c.query_id} against {c.match_id}: {type(err).__name__}: {err}")
             out.append(dataclasses.replace(c, verified=v.accepted, fitness=v.fitness,
                                            match_T_query=v.match_T_query, covariance=v.covariance,
                                            verification=v.reason))

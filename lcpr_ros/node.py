@@ -216,6 +216,8 @@ class LcprNode(Node):
         for candidate in result.candidates:
             if candidate.verification != "off":
                 self.verdicts.add(candidate.verification)
+        for error in result.errors:
+            self.warnings("verification failed", f"{error}; the candidate counts as unverified, the node goes on")
         if result.candidates:
             self._candidates_pub.publish(candidates_msg(result))
             self.markers.publish(result, synced.pose, self.poses.frame_id, max_distance)

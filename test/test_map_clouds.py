@@ -304,3 +304,18 @@ def test_a_map_from_a_session_without_verification_gives_no_cloud_and_no_loop(tm
     result = det.process(revisit(worlds, 0.0))
     assert [c.verification for c in result.candidates] == ["no cloud", "no cloud"]
     assert result.loop is None
+
+
+def test_a_registration_that_raises_fails_that_candidate_keeps_the_keyframe_and_says_why(worlds, monkeypatch):
+    det = make_detector()
+    for f in first_session(worlds):
+        det.process(f)
+
+    def broken(query, match, **options):
+        raise RuntimeError("registration blew up")
+
+    monkeypatch.setattr(det.verifier, "verify_prepared", broken)
+    result = det.process(revisit(worlds, 40.0))
+    assert result.keyframe_id == 2 and len(det.map) == 3 and len(det.map.clouds) == 3
+    assert [c.verification for c in result.candidates] == ["failed", "failed"] and result.loop is None
+    assert len(result.errors) == 2 and all("RuntimeError: registration blew up" in e for e in result.errors)
