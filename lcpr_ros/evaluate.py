@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from lcpr_core.describer import PRECISIONS, Describer, ModelConfig
-from lcpr_core.detector import DetectorConfig, Frame, KeyframeConfig, LoopDetector, MatchConfig
+from lcpr_core.detector import Candidate, DetectorConfig, Frame, KeyframeConfig, LoopDetector, MatchConfig
 from lcpr_core.errors import LcprError
 from lcpr_core.evaluation import (
     EvaluationReport,
@@ -109,7 +109,6 @@ class _RunRecord:
     detector: LoopDetector
     matcher: ScanContextMatcher | None
     stamps: list[float] = field(default_factory=list)
-    positions: list[np.ndarray] = field(default_factory=list)
     lcpr_ids: list[list[int]] = field(default_factory=list)  # map ids, best first
     lcpr_dist: list[list[float]] = field(default_factory=list)
     lcpr_timings: list[dict[str, float]] = field(default_factory=list)
@@ -118,12 +117,15 @@ class _RunRecord:
     sc_timings: list[dict[str, float]] = field(default_factory=list)
     map_ids: list[int] = field(default_factory=list)
     poses: list[np.ndarray] = field(default_factory=list)  # 4 x 4 world_T_base, NaN where unknown
-    # the keyframe's verified loop (Result.loop): (match map id, match_T_query, covariance, fitness), or None
-    verified: list[tuple[int, np.ndarray | None, np.ndarray | None, float] | None] = field(default_factory=list)
-    verification: bool = False  # the detector verified candidates
+    verified: list[Candidate | None] = field(default_factory=list)  # the keyframe's verified loop (Result.loop)
     lidar_frame: str | None = None  # frame id of the clouds (the first keyframe's)
     reasons: Counter = field(default_factory=Counter)
     degraded: int = 0
+
+    @property
+    def positions(self) -> np.ndarray:
+        """(N, 3) keyframe positions, NaN where unknown."""
+        return np.asarray(self.poses, np.float64).reshape(-1, 4, 4)[:, :3, 3]
     frames: int = 0
 
 
@@ -172,11 +174,11 @@ def evaluate_bag(
         "frames": record.frames, "frames_in_bag": len(stream), "keyframes": len(record.stamps),
         "not_keyframes": {r: n for r, n in record.reasons.items() if r != "keyframe"},
         "degraded_keyframes": record.degraded,
-        "keyframes_without_pose": int(sum(not np.isfinite(p).all() for p in record.positions)),
+        "keyframes_without_pose": int((~np.isfinite(record.positions).all(axis=1)).sum()),
         "dropped_clouds": stream.stats.dropped_clouds, "reader": stats,
     }
     report = _evaluate(record, opts, sc_cfg, counts, os.fspath(bag))
-    if record.verification:
+    if opts.verify.enabled:
         report.verified = _verified(record, opts, report, bag)
     report.wall_time_s = time.perf_counter() - start
     return report
@@ -203,11 +205,10 @@ def _verified(record: _RunRecord, opts: EvalOptions, report: EvaluationReport,
     """Score each keyframe's verified loop and put them in a pose graph over drifted ground truth."""
     row_of = {map_id: row for row, map_id in enumerate(record.map_ids)}
     loops, fitness = [], []
-    for row, entry in enumerate(record.verified):
-        if entry is not None and entry[0] in row_of:
-            match_id, match_T_query, covariance, fit = entry
-            loops.append(PublishedLoop(row, row_of[match_id], match_T_query, covariance))
-            fitness.append(fit)
+    for row, loop in enumerate(record.verified):
+        if loop is not None and loop.match_id in row_of:
+            loops.append(PublishedLoop(row, row_of[loop.match_id], loop.match_T_query, loop.covariance))
+            fitness.append(loop.fitness)
     base_T_lidar, source = base_T_lidar_of(bag, record.lidar_frame, base_frame=opts.base_frame,
                                            tf_static=opts.topics.tf_static)
     world_T_base = np.asarray(record.poses, np.float64).reshape(-1, 4, 4)
@@ -242,19 +243,11 @@ def _step(frame: SensorFrame, record: _RunRecord) -> None:
     pose = np.full((4, 4), np.nan) if frame.pose is None else np.asarray(frame.pose, np.float64)
     position = pose[:3, 3].copy()
     record.stamps.append(frame.stamp)
-    record.positions.append(position)
     record.poses.append(pose)
     record.map_ids.append(result.keyframe_id)
     if record.lidar_frame is None:
         record.lidar_frame = frame.lidar_frame_id
-    record.verification = result.verification
-    loop = result.loop if result.verification else None
-    record.verified.append(None if loop is None else (
-        loop.match_id,
-        None if loop.match_T_query is None else np.array(loop.match_T_query, np.float64),
-        None if loop.covariance is None else np.array(loop.covariance, np.float64),
-        float(loop.fitness),
-    ))
+    record.verified.append(result.loop if result.verification else None)
     record.lcpr_ids.append([c.match_id for c in result.candidates])
     record.lcpr_dist.append([c.distance for c in result.candidates])
     record.lcpr_timings.append(dict(result.timings))
@@ -283,7 +276,7 @@ def _evaluate(record: _RunRecord, opts: EvalOptions, sc_cfg: ScanContextConfig |
               source: str) -> EvaluationReport:
     k = max(N_VALUES)
     stamps = np.asarray(record.stamps, np.float64)
-    positions = np.asarray(record.positions, np.float64).reshape(-1, 3)
+    positions = record.positions
     split = None if opts.split_offset is None or not len(stamps) else float(stamps[0]) + opts.split_offset
     gt = ground_truth(stamps, positions, radius=opts.radius, exclude_recent_s=opts.exclude_recent_s, split_time=split)
     row_of = {map_id: row for row, map_id in enumerate(record.map_ids)}
