@@ -25,7 +25,7 @@ import numpy as np
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from verify_real import cpu_model, pose_error, true_pairs  # noqa: E402
+from verify_real import PreparedScans, cpu_model, pose_error, true_pairs  # noqa: E402
 from verify_tune import SyntheticLidar  # noqa: E402
 
 from lcpr_core.verification import GeometricVerifier  # noqa: E402
@@ -67,12 +67,9 @@ def kiss_register(q_xyz: np.ndarray, m_xyz: np.ndarray, start: np.ndarray) -> np
 def compare(name: str, seq, truth_poses: np.ndarray, pairs: np.ndarray, verifier: GeometricVerifier,
             seed: int) -> dict[str, dict[str, float]]:
     rng = np.random.default_rng(seed)
-    prepared: dict[int, object] = {}
+    prepared = PreparedScans(verifier, seq)
     rows: dict[str, list[tuple[float, float, float]]] = {"small_gicp": [], "kiss-icp": []}
     for q, m in tqdm(pairs, desc=name, unit="pair"):
-        for i in (q, m):
-            if i not in prepared:
-                prepared[i] = verifier.prepare(verifier.compact(seq.points(i)))
         Q, M = prepared[q], prepared[m]
         truth = np.linalg.inv(truth_poses[m]) @ truth_poses[q]
         start = perturb(truth, rng)

@@ -17,6 +17,7 @@ import numpy as np
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from verify_real import PreparedScans  # noqa: E402
 from verify_tune import SyntheticLidar  # noqa: E402
 
 from lcpr_core.posegraph import relative_pose_error  # noqa: E402
@@ -34,12 +35,9 @@ def main(argv: list[str] | None = None) -> int:
     gap = seq.stamps[:, None] - seq.stamps[None]
     queries, matches = np.nonzero((gap >= 30.0) & (dist > 9.0) & (dist <= 25.0))
     verifier = GeometricVerifier()
-    prepared: dict[int, object] = {}
+    prepared = PreparedScans(verifier, seq)
     accepted = []
     for q, m in tqdm(list(zip(queries.tolist(), matches.tolist())), desc="pairs 9-25 m", unit="pair"):
-        for i in (q, m):
-            if i not in prepared:
-                prepared[i] = verifier.prepare(verifier.compact(seq.points(i)))
         v = verifier.verify_prepared(prepared[q], prepared[m])
         if v.accepted:
             err = relative_pose_error(v.match_T_query, np.linalg.inv(seq.poses[m]) @ seq.poses[q])

@@ -32,7 +32,7 @@ from tqdm import tqdm
 
 from lcpr_core.posegraph import relative_pose_error, rotation_angle_deg, rotation_error_deg
 from lcpr_core.scan_context import ScanContextConfig, _all_shifts, scan_context
-from lcpr_core.verification import GeometricVerifier, VerifierConfig
+from lcpr_core.verification import GeometricVerifier, PreparedCloud, VerifierConfig
 from msg_tools.convert.scan_folder import ScanFolder
 from msg_tools.ground_truth import revisit_pairs
 
@@ -78,15 +78,25 @@ def split_pairs(pairs: np.ndarray, n: int, split: str) -> np.ndarray:
     return pairs[first] if split == "validation" else pairs[~first]
 
 
-def run_pairs(verifier: GeometricVerifier, seq: ScanFolder, pairs: np.ndarray, prepared: dict, desc: str,
+class PreparedScans:
+    """The prepared compact clouds of a sequence's scans (``seq.points(i)``), each made once: pairs share scans."""
+
+    def __init__(self, verifier: GeometricVerifier, seq) -> None:
+        self.verifier, self.seq = verifier, seq
+        self._cache: dict[int, PreparedCloud] = {}
+
+    def __getitem__(self, i: int) -> PreparedCloud:
+        if i not in self._cache:
+            self._cache[i] = self.verifier.prepare(self.verifier.compact(self.seq.points(i)))
+        return self._cache[i]
+
+
+def run_pairs(verifier: GeometricVerifier, seq: ScanFolder, pairs: np.ndarray, prepared: PreparedScans, desc: str,
               odom: ScanFolder) -> dict[str, np.ndarray]:
     rows: dict[str, list] = {k: [] for k in ("accepted", "reason", "fitness", "rmse", "corr_m", "corr_deg",
                                              "constraint", "err_m", "err_deg", "odom_err_m", "odom_err_deg",
                                              "seconds")}
     for q, m in tqdm(pairs, desc=desc, unit="pair"):
-        for i in (q, m):
-            if i not in prepared:
-                prepared[i] = verifier.prepare(verifier.compact(seq.points(i)))
         v = verifier.verify_prepared(prepared[q], prepared[m])
         truth = np.linalg.inv(seq.poses[m]) @ seq.poses[q]
         err_m, err_deg = pose_error(v.match_T_query, truth)
@@ -143,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     for name in SETS:
         seq = ScanFolder(args.data / name)
         odom = ScanFolder(args.data / name, poses_file="odom_poses.txt")
-        prepared: dict[int, object] = {}
+        prepared = PreparedScans(verifier, seq)
         sets = {"true": true_pairs(seq)}
         if name == "campus":
             sets["far_random"], sets["far_hard"] = far_pairs(seq, sample=args.far, hard=args.hard, seed=args.seed)

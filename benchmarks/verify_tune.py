@@ -27,7 +27,7 @@ import numpy as np
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from verify_real import FAR_M, cpu_model, far_pairs, split_pairs, true_pairs  # noqa: E402
+from verify_real import FAR_M, PreparedScans, cpu_model, far_pairs, split_pairs, true_pairs  # noqa: E402
 
 from lcpr_core.posegraph import relative_pose_error  # noqa: E402
 from lcpr_core.verification import GeometricVerifier, VerifierConfig  # noqa: E402
@@ -59,12 +59,9 @@ class SyntheticLidar:
 
 
 def evidence(verifier: GeometricVerifier, seq, pairs: np.ndarray, desc: str) -> dict[str, np.ndarray]:
-    prepared: dict[int, object] = {}
+    prepared = PreparedScans(verifier, seq)
     rows = []
     for q, m in tqdm(pairs, desc=desc, unit="pair"):
-        for i in (q, m):
-            if i not in prepared:
-                prepared[i] = verifier.prepare(verifier.compact(seq.points(i)))
         v = verifier.verify_prepared(prepared[q], prepared[m])
         err_m, err_deg = relative_pose_error(v.match_T_query, np.linalg.inv(seq.poses[m]) @ seq.poses[q])
         rows.append((v.fitness, v.constraint, v.rmse, v.correction_m, v.correction_deg, err_m, err_deg,
