@@ -53,10 +53,7 @@ class VerifierConfig:
       away from its initial guess (a registration that runs away converged on something else);
     - the registration is well constrained: the smallest eigenvalue of the point-to-plane
       information of the inliers (translation and rotation blocks, normalised; 0..1/3) is
-      at least ``min_constraint`` (a plane, a corridor, a sphere shell give ~0);
-    - with ``ambiguity_margin`` > 0 (off by default): no other coarse hypothesis reaches
-      nearly the same inlier share (within the margin) at a pose more than
-      ``ambiguity_m`` away (repetitive structure).
+      at least ``min_constraint`` (a plane, a corridor, a sphere shell give ~0).
 
     Thresholds default to values chosen on validation drives (see benchmarks/verify_tune.py),
     never on the drives the README reports as held out.
@@ -87,8 +84,6 @@ class VerifierConfig:
     max_correction_m: float = 8.0  # sanity bounds: the initial guess is within ~1 m and a few degrees
     max_correction_deg: float = 30.0
     min_constraint: float = 0.02  # 0..1/3 point-to-plane observability (verify_tune.py); a plane, a sphere ~0
-    ambiguity_margin: float = 0.0
-    ambiguity_m: float = 2.0
     # covariance: inv(Hessian) * residual variance factor * inflation, floored per axis
     covariance_inflation: float = 10.0
     min_sigma_m: float = 0.02
@@ -99,8 +94,8 @@ class VerifierConfig:
             raise VerificationError(f"verify.registration={self.registration!r}; accepted: {', '.join(REGISTRATIONS)}")
         _positive(self, "num_threads", "min_points", "yaw_hypotheses", "bev_cell", "bev_extent", "registrations", "coarse_voxel",
                   "coarse_distance", "fine_distance", "coarse_iterations", "max_iterations", "inlier_distance", "plane_distance", "max_rmse",
-                  "max_correction_m", "max_correction_deg", "ambiguity_m", "covariance_inflation")
-        _non_negative(self, "early_reject", "min_constraint", "ambiguity_margin", "min_sigma_m", "min_sigma_deg")
+                  "max_correction_m", "max_correction_deg", "covariance_inflation")
+        _non_negative(self, "early_reject", "min_constraint", "min_sigma_m", "min_sigma_deg")
         if not 0.0 <= self.min_fitness <= 1.0:
             raise VerificationError(f"verify.min_fitness={self.min_fitness!r}; accepted: 0 <= min_fitness <= 1")
         if self.bev_extent / self.bev_cell > 1024:

@@ -32,7 +32,7 @@ from .initial import BevMatcher, Hypothesis, polar_context, yaw_candidates
 
 ACCEPTED = "accepted"
 REJECT_REASONS: tuple[str, ...] = (
-    "too few points", "low overlap", "high residual", "large correction", "degenerate", "ambiguous", "failed",
+    "too few points", "low overlap", "high residual", "large correction", "degenerate", "failed",
 )
 _ROS_ORDER = [3, 4, 5, 0, 1, 2]  # small_gicp's (rotation, translation) tangent -> (x, y, z, roll, pitch, yaw)
 _NEIGHBOURS = 10
@@ -149,8 +149,7 @@ class GeometricVerifier:
             return Verification(False, "low overlap", coarse[0][1], early, initial=coarse[0][2],
                                 coarse_fitness=early, seconds=time.perf_counter() - tic)
         best = self._fine(query, match, coarse[0][1], coarse[0][2])
-        rivals = [T for score, T, _ in coarse[1:] if score >= coarse[0][0] - cfg.ambiguity_margin]
-        verdict = self._judge(best, rivals)
+        verdict = self._judge(best)
         return replace(verdict, coarse_fitness=early, seconds=time.perf_counter() - tic)
 
     def starts(self, query: PreparedCloud, match: PreparedCloud) -> list[np.ndarray]:
@@ -222,7 +221,7 @@ class GeometricVerifier:
         rmse = float(np.sqrt(np.mean(d_q ** 2))) if len(d_q) else math.inf
         return 0.5 * (share_q + share_m), rmse
 
-    def _judge(self, best: _Registered, rivals: list[np.ndarray]) -> Verification:
+    def _judge(self, best: _Registered) -> Verification:
         cfg = self.config
         delta = np.linalg.inv(best.initial) @ best.T
         correction_m = float(np.linalg.norm(delta[:3, 3]))
@@ -243,9 +242,6 @@ class GeometricVerifier:
             reason = "large correction"
         elif constraint < cfg.min_constraint or not np.isfinite(covariance).all():
             reason = "degenerate"
-        elif cfg.ambiguity_margin > 0 and any(np.linalg.norm(T[:3, 3] - best.T[:3, 3]) > cfg.ambiguity_m
-                                              for T in rivals):
-            reason = "ambiguous"
         return Verification(reason == ACCEPTED, reason, **common)
 
     def _covariance(self, r: _Registered) -> np.ndarray:
