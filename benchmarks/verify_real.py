@@ -8,9 +8,12 @@ Pairs (poses: the folders' optimized_poses.txt, a SLAM system's estimates):
   pose within 0.3 m and 2 deg of the SLAM poses';
 - far pairs (> 20 m apart) in ``campus``: a seeded random sample of ``--far`` pairs, and
   the ``--hard`` far keyframes per query whose Scan Context is nearest (what a retrieval
-  stage proposes); none may be accepted. ``--split test`` (default) keeps the campus pairs
-  whose query lies in the second half: the first half chose the thresholds
-  (benchmarks/verify_tune.py).
+  stage proposes); none may be accepted.
+
+``--split test`` (default) keeps the pairs whose query lies in the second half of each
+set (campus: its keyframes; walk_loop: its return, see ``split_at``): the first halves
+chose the thresholds and the coarse stage (benchmarks/verify_tune.py). walk_loop's target
+counts all its true pairs, so they are reported as ``walk_loop/true_all`` too.
 
 Pose errors are reported against both pose files: at walk_loop's loop the optimized
 poses and the odometry disagree by ~0.27 m (the SLAM system's own loop correction),
@@ -48,10 +51,16 @@ def true_pairs(seq: ScanFolder) -> np.ndarray:
     return pairs[rotation_angle_deg(rel) < TRUE_ROT_DEG]
 
 
-def far_pairs(seq: ScanFolder, *, sample: int, hard: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """(random sample, hardest by Scan Context) of pairs (query, match) more than FAR_M apart."""
+def far_pairs(seq: ScanFolder, *, sample: int, hard: int, seed: int, before: int | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """(random sample, hardest by Scan Context) of pairs (query, match) more than FAR_M apart.
+
+    ``before``: only queries before that keyframe (the random sample is drawn among them).
+    """
     P = seq.poses[:, :3, 3]
     d = np.linalg.norm(P[:, None] - P[None], axis=-1)
+    if before is not None:
+        d[before:] = 0.0
     q, m = np.nonzero(np.triu(d > FAR_M, 1).T)  # q > m
     all_far = np.stack([q, m], axis=1)
     rng = np.random.default_rng(seed)
@@ -70,11 +79,22 @@ def far_pairs(seq: ScanFolder, *, sample: int, hard: int, seed: int) -> tuple[np
     return random, np.array(hardest, np.int64).reshape(-1, 2)
 
 
-def split_pairs(pairs: np.ndarray, n: int, split: str) -> np.ndarray:
-    """campus pairs of one split: "validation" = query in the first half of the keyframes, "test" = the rest."""
+def split_at(name: str, seq: ScanFolder) -> int:
+    """The query keyframe that splits a set's pairs into validation (queries before it) and test.
+
+    campus: half its keyframes. walk_loop: its revisits all come at the end of the walk,
+    so the median query keyframe of its true pairs (the first half of the return).
+    """
+    if name == "walk_loop":
+        return int(np.median(true_pairs(seq)[:, 0]))
+    return len(seq) // 2
+
+
+def split_pairs(pairs: np.ndarray, at: int, split: str) -> np.ndarray:
+    """Pairs of one split: "validation" = query keyframe before ``at``, "test" = the rest, "all"."""
     if split == "all":
         return pairs
-    first = pairs[:, 0] < n // 2
+    first = pairs[:, 0] < at
     return pairs[first] if split == "validation" else pairs[~first]
 
 
@@ -143,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--hard", type=int, default=3, help="hardest far pairs per campus keyframe (Scan Context)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--split", choices=("test", "validation", "all"), default="test",
-                   help="campus pairs by query half (validation: the first half, used by verify_tune.py)")
+                   help="pairs by query half (validation: the first half, used by verify_tune.py)")
     p.add_argument("--out", type=Path, default=Path("out/verify_real"))
     args = p.parse_args(argv)
     verifier = GeometricVerifier(VerifierConfig())
@@ -157,13 +177,16 @@ def main(argv: list[str] | None = None) -> int:
         sets = {"true": true_pairs(seq)}
         if name == "campus":
             sets["far_random"], sets["far_hard"] = far_pairs(seq, sample=args.far, hard=args.hard, seed=args.seed)
-            sets = {k: split_pairs(v, len(seq), args.split) for k, v in sets.items()}
+        at = split_at(name, seq)
+        sets = {k: split_pairs(v, at, args.split) for k, v in sets.items()}
+        if args.split == "test" and name == "walk_loop":  # the target counts all of walk_loop's true pairs
+            sets["true_all"] = true_pairs(seq)
         for kind, pairs in sets.items():
             key = f"{name}/{kind}"
             r = run_pairs(verifier, seq, pairs, prepared, key, odom)
             results.update({f"{key}/{k}": v for k, v in r.items()})
             results[f"{key}/pairs"] = pairs
-            summary[key] = summarise(key, r, true=kind == "true")
+            summary[key] = summarise(key, r, true=kind.startswith("true"))
     args.out.mkdir(parents=True, exist_ok=True)
     np.savez(args.out / "pairs.npz", **results)
     (args.out / "summary.json").write_text(json.dumps(summary, indent=2))

@@ -38,9 +38,11 @@ class VerifierConfig:
     Pipeline: initial yaw hypotheses from the Scan Context column shift
     (``yaw_hypotheses`` best shifts), each completed with an x/y offset from a
     bird's-eye-view cross-correlation (``bev_cell``); the best
-    ``registrations`` hypotheses are registered with small_gicp (GICP by default) on
-    clouds downsampled to ``coarse_voxel``, and the best of them (largest overlap) again on
-    the full compact clouds, unless its overlap at the coarse pose is already under
+    ``registrations`` hypotheses (then the best yaw with no offset, then identity) are
+    registered with small_gicp (GICP by default) on clouds downsampled to about
+    ``coarse_points`` points, in turn until one reaches an overlap of ``coarse_accept``; the
+    best of them (largest overlap) again on the compact clouds,
+    unless its overlap at the coarse pose is already under
     ``early_reject * min_fitness`` ("low overlap" at once: the common case of a wrong
     candidate; benchmarks/verify_tune.py chose it to turn away at most 2 % of validation true pairs);
     the result is accepted when all of:
@@ -70,16 +72,18 @@ class VerifierConfig:
     bev_extent: float = 48.0  # m, half width of the bird's-eye view
     registrations: int = 2  # BEV hypotheses registered at the coarse level (with 2 more starts, see starts())
     # registration
-    coarse_voxel: float = 2.0  # m, voxel of the coarse stage's clouds
-    early_reject: float = 0.6  # overlap at the coarse pose under early_reject * min_fitness: rejected at once
+    coarse_voxel: float = 2.0  # m, first voxel tried for the coarse stage's clouds ...
+    coarse_points: int = 600  # ... rescaled so that each keeps about this many points (any field of view)
+    coarse_accept: float = 0.45  # a start whose coarse overlap reaches this ends the search over starts
+    early_reject: float = 0.7  # overlap at the coarse pose under early_reject * min_fitness: rejected at once
     coarse_distance: float = 3.0  # m, max correspondence distance of the coarse stage
     fine_distance: float = 1.0  # m, of the fine stage
-    coarse_iterations: int = 8  # a right start converges in a few; a wrong one would wander for all of them
+    coarse_iterations: int = 15  # a right start converges in a few; a narrow field of view needs more (verify_tune.py)
     max_iterations: int = 10  # of the fine stage (it starts from a converged coarse pose)
     # acceptance
     inlier_distance: float = 0.6  # m, nearest-neighbour reach of an inlier
     plane_distance: float = 0.1  # m, its distance to the neighbour's local plane
-    min_fitness: float = 0.41  # benchmarks/verify_tune.py: <= 0.1 % of validation false pairs pass
+    min_fitness: float = 0.45  # benchmarks/verify_tune.py: <= 0.1 % of validation false pairs pass
     max_rmse: float = 0.2  # m
     max_correction_m: float = 8.0  # sanity bounds: the initial guess is within ~1 m and a few degrees
     max_correction_deg: float = 30.0
@@ -92,10 +96,10 @@ class VerifierConfig:
     def __post_init__(self) -> None:
         if self.registration not in REGISTRATIONS:
             raise VerificationError(f"verify.registration={self.registration!r}; accepted: {', '.join(REGISTRATIONS)}")
-        _positive(self, "num_threads", "min_points", "yaw_hypotheses", "bev_cell", "bev_extent", "registrations", "coarse_voxel",
+        _positive(self, "num_threads", "min_points", "yaw_hypotheses", "bev_cell", "bev_extent", "registrations", "coarse_voxel", "coarse_points",
                   "coarse_distance", "fine_distance", "coarse_iterations", "max_iterations", "inlier_distance", "plane_distance", "max_rmse",
                   "max_correction_m", "max_correction_deg", "covariance_inflation")
-        _non_negative(self, "early_reject", "min_constraint", "min_sigma_m", "min_sigma_deg")
+        _non_negative(self, "coarse_accept", "early_reject", "min_constraint", "min_sigma_m", "min_sigma_deg")
         if not 0.0 <= self.min_fitness <= 1.0:
             raise VerificationError(f"verify.min_fitness={self.min_fitness!r}; accepted: 0 <= min_fitness <= 1")
         if self.bev_extent / self.bev_cell > 1024:

@@ -98,10 +98,10 @@ class BevMatcher:
         self.cell, self.extent = cell, extent
         image = bev_image(match_xyz, cell=cell, extent=extent)
         self.size = image.shape[0]
-        self._pad = 2 * self.size  # zero padding: no wrap-around
+        reach = min(int(math.ceil(max_offset / cell)), self.size - 1)
+        self._pad = _fft_size(self.size + reach)  # zero padding: no wrap-around within +-reach
         self._norm = float(np.linalg.norm(image))
         self._spectrum = np.fft.rfft2(image, s=(self._pad, self._pad))
-        reach = int(math.ceil(max_offset / cell))
         offsets = np.fft.fftfreq(self._pad, d=1.0 / self._pad).astype(np.int64)  # FFT index -> signed shift
         self._offsets = offsets
         self._window = np.abs(offsets) <= reach
@@ -118,6 +118,18 @@ class BevMatcher:
         i, j = np.unravel_index(int(np.argmax(corr)), corr.shape)
         di, dj = int(self._offsets[i]), int(self._offsets[j])
         return Hypothesis(yaw, di * self.cell, dj * self.cell, float(max(corr[i, j], 0.0) / norm))
+
+
+def _fft_size(n: int) -> int:
+    """The smallest n' >= n whose only prime factors are 2, 3 and 5 (fast for pocketfft)."""
+    while True:
+        m = n
+        for p in (2, 3, 5):
+            while m % p == 0:
+                m //= p
+        if m == 1:
+            return n
+        n += 1
 
 
 def _wrap(angle: float) -> float:

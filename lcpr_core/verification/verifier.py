@@ -118,11 +118,26 @@ class GeometricVerifier:
         tree = small_gicp.KdTree(cloud, num_threads=threads)
         small_gicp.estimate_normals_covariances(cloud, tree, num_neighbors=_NEIGHBOURS, num_threads=threads)
         normals = np.asarray(cloud.normals())[:, :3]
-        coarse = small_gicp.voxelgrid_sampling(cloud, self.config.coarse_voxel)  # single thread: deterministic
+        coarse = self._coarse_cloud(cloud)
         coarse_tree = small_gicp.KdTree(coarse, num_threads=threads)
         small_gicp.estimate_covariances(coarse, coarse_tree, num_neighbors=_NEIGHBOURS, num_threads=threads)
         return PreparedCloud(xyz=xyz, cloud=cloud, tree=tree, context=polar_context(xyz), normals=normals,
                              coarse=coarse, coarse_tree=coarse_tree)
+
+    def _coarse_cloud(self, cloud: small_gicp.PointCloud) -> small_gicp.PointCloud:
+        """The cloud voxelised to about ``coarse_points`` points, starting from ``coarse_voxel``.
+
+        Surface points scale with 1 / voxel^2, so one rescaled resampling lands close. A fixed
+        voxel would leave a narrow-field sensor (a Livox sees ~70 deg) a few hundred points,
+        too few for GICP's local covariances, and a 360 deg sensor thousands, which only cost time.
+        """
+        cfg = self.config
+        coarse = small_gicp.voxelgrid_sampling(cloud, cfg.coarse_voxel)  # single thread: deterministic
+        ratio = coarse.size() / cfg.coarse_points
+        if not 0.7 <= ratio <= 1.4:
+            voxel = max(cfg.coarse_voxel * math.sqrt(ratio), cfg.cloud.voxel)
+            coarse = small_gicp.voxelgrid_sampling(cloud, voxel)
+        return coarse
 
     # -- verification ----------------------------------------------------------------------
     def verify(self, query_xyz: np.ndarray, match_xyz: np.ndarray, initial_guess: np.ndarray | None = None
@@ -142,7 +157,11 @@ class GeometricVerifier:
             starts = [_rigid(initial_guess)]
         else:
             starts = self.starts(query, match)
-        coarse = [self._coarse(query, match, T0) for T0 in starts]  # (overlap at the coarse pose, T, T0)
+        coarse = []  # (overlap at the coarse pose, T, T0)
+        for T0 in starts:
+            coarse.append(self._coarse(query, match, T0))
+            if coarse[-1][0] >= cfg.coarse_accept:  # clearly the place: the other starts cannot do better
+                break
         coarse.sort(key=lambda c: -c[0])
         early = coarse[0][0]
         if early < cfg.early_reject * cfg.min_fitness:  # far from acceptable already: skip the fine stage
