@@ -30,6 +30,7 @@ setup(
         "pyyaml>=6",
         "rosbags>=0.10",
         "small_gicp>=1.0",  # registration for geometric verification
+        "opencv-python-headless>=4.8",  # Bayer demosaicing and YUV -> RGB of camera-native encodings
     ],
     extras_require={
         # ROS 2 from PyPI for machines without a ROS installation; a vehicle with

@@ -12,8 +12,12 @@ from dataclasses import dataclass, field
 from lcpr_core.detector import DetectorConfig
 from msg_tools.frames import NUSCENES_TOPICS
 
+#: ``input_qos`` values (profiles: lcpr_ros.qos). best_available (rclpy >= Iron) matches each
+#: publisher: reliable with reliable publishers such as ``ros2 bag play`` (a replay loses
+#: nothing), best effort with drivers that publish best effort.
+INPUT_QOS: tuple[str, ...] = ("best_available", "sensor_data", "reliable")
+
 CAMERA_TYPES = ("auto", "compressed", "raw")
-INPUT_QOS = ("sensor_data", "reliable")
 
 
 def require(ok: bool, message: str) -> None:
@@ -68,7 +72,7 @@ class NodeConfig:
     camera_type: str = "auto"  # auto (".../compressed" -> CompressedImage) | compressed | raw
     lidar_topic: str = NUSCENES_TOPICS.lidar
     odom_topic: str = ""  # nav_msgs/Odometry; "" = no poses (no markers, no distance keyframing)
-    input_qos: str = "sensor_data"  # sensor_data (best effort) | reliable (bag replay: lose nothing)
+    input_qos: str = "best_available"  # best_available | sensor_data (best effort) | reliable (lcpr_ros.qos)
     sync: SyncConfig = field(default_factory=SyncConfig)
     map: MapFileConfig = field(default_factory=MapFileConfig)
     diagnostics: DiagnosticsConfig = field(default_factory=DiagnosticsConfig)

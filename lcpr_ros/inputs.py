@@ -17,11 +17,12 @@ from msg_tools.errors import (
     GeometryError,
     ImageEncodingError,
     ImageError,
+    ImageLayoutError,
     MissingFieldError,
     PointCloudDataError,
     PointCloudError,
 )
-from msg_tools.image import COLOUR_ENCODINGS, ENCODINGS, image_to_rgb
+from msg_tools.image import COLOUR_ENCODINGS, check_layout, image_to_rgb
 from msg_tools.pointcloud import finite_mask, pointcloud2_to_array
 from msg_tools.transforms import odometry_to_pose
 
@@ -50,19 +51,29 @@ def cloud_array(msg: Any) -> np.ndarray:
         raise InputRejected(CLOUD_BAD_LAYOUT, str(err)) from err
 
 
-def finite_points(cloud: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(N x 3 float32 points with finite x, y, z; the (len(cloud),) mask of those points)."""
-    keep = finite_mask(cloud)
-    return np.stack([cloud["x"][keep], cloud["y"][keep], cloud["z"][keep]], axis=1).astype(np.float32), keep
+def finite_points(cloud: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """(N x 3 float32 points with finite x, y, z other than the origin; the (len(cloud),) mask of them;
+    how many points had NaN/inf x, y or z).
+
+    x = y = z = 0 is how Ouster's and several other drivers mark a beam without a return in an
+    organised cloud: it is no measurement and never becomes a range-image pixel or a map point.
+    """
+    finite = finite_mask(cloud)
+    keep = finite & ~((cloud["x"] == 0) & (cloud["y"] == 0) & (cloud["z"] == 0))
+    points = np.stack([cloud["x"][keep], cloud["y"][keep], cloud["z"][keep]], axis=1).astype(np.float32)
+    return points, keep, int(finite.size - np.count_nonzero(finite))
 
 
 def cloud_points(msg: Any) -> tuple[np.ndarray, int]:
-    """PointCloud2 -> (N x 3 float32 finite points, number of non-finite points removed)."""
+    """PointCloud2 -> (N x 3 float32 points, number of points with NaN/inf x, y or z removed).
+
+    Zero (no-return) points are removed too, without being counted: a driver's convention, not a fault.
+    """
     cloud = cloud_array(msg)
     if any(cloud.dtype[name].shape for name in ("x", "y", "z")):
         raise InputRejected(CLOUD_BAD_LAYOUT, "x, y and z must be single values per point (PointField count 1)")
-    points, keep = finite_points(cloud)
-    return points, int(keep.size - np.count_nonzero(keep))
+    points, _, nonfinite = finite_points(cloud)
+    return points, nonfinite
 
 
 def compressed_payload(msg: Any) -> bytes:
@@ -83,14 +94,12 @@ def raw_payload(msg: Any) -> Any:
     if encoding not in COLOUR_ENCODINGS:
         raise InputRejected(IMAGE_ENCODING,
                             f"encoding {encoding!r} is not a colour encoding; accepted: {', '.join(COLOUR_ENCODINGS)}")
-    height, width, step = int(msg.height), int(msg.width), int(msg.step)
-    enc = ENCODINGS[encoding]
-    row = width * enc.channels * enc.dtype.itemsize
-    if height <= 0 or width <= 0:
-        raise InputRejected(IMAGE_SIZE, f"image is {width} x {height}; it must not be empty")
-    if step < row or len(msg.data) < step * height:
-        raise InputRejected(IMAGE_SIZE, f"{width} x {height} {encoding} needs step >= {row} and "
-                                        f"step * height bytes; got step {step}, {len(msg.data)} bytes")
+    if int(msg.height) <= 0 or int(msg.width) <= 0:
+        raise InputRejected(IMAGE_SIZE, f"image is {msg.width} x {msg.height}; it must not be empty")
+    try:
+        check_layout(msg)
+    except ImageLayoutError as err:
+        raise InputRejected(IMAGE_SIZE, str(err)) from err
     return msg
 
 

@@ -19,7 +19,6 @@ from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
@@ -29,6 +28,7 @@ from lcpr_core.detector import DetectorConfig, Frame, LoopDetector
 from lcpr_core.preprocess.camera import CameraInput
 
 from .config import NodeConfig
+from .qos import CANDIDATE_QOS, QOS_ADAPTED, SensorSubscription
 from .diagnostics import DiagnosticsBuilder, Health
 from .errors import ConfigError, InputRejected
 from .inputs import CLOUD_NAN, camera_input, cloud_points, compressed_payload, odometry_pose, raw_payload
@@ -50,10 +50,6 @@ FAILED = "frame: processing failed"
 RELEASE_PERIOD = 0.05  # s between checks for clouds whose wait for images ran out
 SHUTDOWN_TIMEOUT = 60.0  # s the worker may take to finish its frames at shutdown
 
-#: Candidate topics: every candidate must arrive.
-RELIABLE_INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
-CANDIDATE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
-                           durability=DurabilityPolicy.VOLATILE)
 
 
 class LcprNode(Node):
@@ -83,7 +79,7 @@ class LcprNode(Node):
         self._detector_lock = threading.Lock()
         self._next_detector_config: DetectorConfig | None = None
 
-        self._input_qos = RELIABLE_INPUT_QOS if node_cfg.input_qos == "reliable" else qos_profile_sensor_data
+        self._sensor_subscriptions: list[SensorSubscription] = []
         self.poses, self.markers = self._pose_parts(node_cfg)  # first: see _pose_parts
         self.sync = Synchroniser(node_cfg.sync, len(node_cfg.camera_topics), poses=self.poses)
 
@@ -96,9 +92,8 @@ class LcprNode(Node):
         for k, topic in enumerate(node_cfg.camera_topics):
             compressed = node_cfg.compressed(k)
             self._payload.append(compressed_payload if compressed else raw_payload)
-            self.create_subscription(CompressedImage if compressed else Image, topic, partial(self._on_image, k),
-                                     self._input_qos)
-        self.create_subscription(PointCloud2, node_cfg.lidar_topic, self._on_cloud, self._input_qos)
+            self._subscribe(CompressedImage if compressed else Image, topic, partial(self._on_image, k))
+        self._subscribe(PointCloud2, node_cfg.lidar_topic, self._on_cloud)
         self.create_service(Trigger, "~/save_map", self._on_save_map)
         self.create_timer(RELEASE_PERIOD, self._release)
         self.create_timer(node_cfg.diagnostics.period, self._publish_diagnostics)
@@ -120,8 +115,13 @@ class LcprNode(Node):
         if not cfg.odom_topic:
             return NoPoses(), NoMarkers()
         buffer = OdometryBuffer(slop=cfg.sync.slop, max_gap=cfg.sync.odom_max_gap)
-        self.create_subscription(Odometry, cfg.odom_topic, partial(self._on_odom, buffer), self._input_qos)
+        self._subscribe(Odometry, cfg.odom_topic, partial(self._on_odom, buffer))
         return buffer, LoopMarkers(self.create_publisher(MarkerArray, "~/markers", CANDIDATE_QOS))
+
+    def _subscribe(self, msg_type: type, topic: str, callback: Callable[[Any], None]) -> None:
+        self._sensor_subscriptions.append(SensorSubscription(
+            self, msg_type, topic, callback, self.settings.node.input_qos,
+            warn=lambda text: self.warnings(QOS_ADAPTED, text)))
 
     # -- inputs (callback thread) ---------------------------------------------------------
     def _reject(self, err: InputRejected) -> None:

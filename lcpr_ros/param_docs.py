@@ -84,8 +84,9 @@ DOCS: dict[str, ParamDoc] = {
     "camera_type": ParamDoc("message type of the camera topics; auto: topics ending in /compressed are "
                             "sensor_msgs/CompressedImage, others sensor_msgs/Image", choices=CAMERA_TYPES),
     "lidar_topic": ParamDoc("sensor_msgs/PointCloud2 topic"),
-    "input_qos": ParamDoc("QoS of the sensor subscriptions: sensor_data (best effort, the live default) or "
-                          "reliable (a replayed bag loses nothing)", choices=INPUT_QOS),
+    "input_qos": ParamDoc("QoS of the sensor subscriptions: best_available (the default: reliable with reliable "
+                          "publishers such as ros2 bag play, best effort with best-effort drivers), sensor_data "
+                          "(best effort) or reliable", choices=INPUT_QOS),
     "odom_topic": ParamDoc("nav_msgs/Odometry topic for poses (markers, keyframe.min_distance); empty = none"),
     # ---- synchronisation
     "sync.slop": ParamDoc("s: each camera's image nearest the cloud stamp within this is used", 0.0, 10.0,

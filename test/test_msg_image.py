@@ -22,8 +22,10 @@ from msg_tools import (
     model_to_camera_info,
 )
 from msg_tools.compressed import compressed_bytes, encode_image
-from msg_tools.image import ENCODINGS
+from msg_tools.image import ENCODINGS, PACKED_YUV_ENCODINGS
 from msg_tools.types import message_class
+
+from camera_encodings import blocky_rgb, mosaic, nv21, packed_yuv422, smooth_rgb
 
 Image = message_class("sensor_msgs/msg/Image")
 Header = message_class("std_msgs/msg/Header")
@@ -66,6 +68,8 @@ def _message(pixels: np.ndarray, encoding: str, *, pad: int, bigendian: bool) ->
 def test_every_encoding_reads_back_through_row_padding_and_roundtrips(
     encoding: str, height: int, width: int, pad: int, bigendian: bool, seed: int
 ) -> None:
+    if encoding in PACKED_YUV_ENCODINGS:
+        width *= 2  # two pixels share their chroma
     pixels = _pixels(encoding, height, width, seed)
     got = image_to_array(_message(pixels, encoding, pad=pad, bigendian=bigendian))
     assert got.dtype == pixels.dtype and got.dtype.isnative and got.shape == pixels.shape
@@ -98,8 +102,8 @@ def test_depth_becomes_metres_with_zero_for_unknown() -> None:
 
 
 def test_an_unknown_encoding_is_refused_with_the_accepted_ones() -> None:
-    msg = _message(_pixels("mono8", 2, 2, 0), "yuv422", pad=0, bigendian=False)
-    with pytest.raises(ImageEncodingError, match="'yuv422' is not supported; accepted: rgb8, bgr8"):
+    msg = _message(_pixels("mono8", 2, 2, 0), "yuv420p", pad=0, bigendian=False)
+    with pytest.raises(ImageEncodingError, match="'yuv420p' is not supported; accepted: rgb8, bgr8"):
         image_to_array(msg)
 
 
@@ -195,3 +199,58 @@ def test_rclpy_images_and_camera_info_convert_too() -> None:
     info = model_to_camera_info(_model(), stamp=1.0, msg_type=sensor_msgs.CameraInfo)
     assert isinstance(info, sensor_msgs.CameraInfo)
     assert np.array_equal(camera_info_to_model(info, name="CAM_FRONT").K, _model().K)
+
+
+# ---------------------------------------------------------------------- camera-native encodings
+@pytest.mark.parametrize("pattern", ["rggb", "bggr", "gbrg", "grbg"])
+def test_a_bayer_mosaic_is_demosaiced_into_the_colours_it_sampled(pattern: str) -> None:
+    encoding = f"bayer_{pattern}8"
+    flat = np.empty((8, 10, 3), np.uint8)
+    flat[:] = (200, 90, 20)  # a colour with three different channels: a wrong pattern swaps them
+    got = image_to_rgb(array_to_image(mosaic(flat, pattern), encoding=encoding, frame_id="c", stamp=0.0))
+    assert got.shape == (8, 10, 3) and got.dtype == np.uint8
+    assert np.abs(got[2:-2, 2:-2].astype(int) - flat[2:-2, 2:-2]).max() <= 1, got[4, 4]
+    smooth = smooth_rgb(24, 32)
+    got = image_to_rgb(array_to_image(mosaic(smooth, pattern), encoding=encoding, frame_id="c", stamp=0.0))
+    assert np.abs(got[2:-2, 2:-2].astype(int) - smooth[2:-2, 2:-2]).max() <= 4
+
+
+@pytest.mark.parametrize("encoding, order", [("yuv422", "UYVY"), ("uyvy", "UYVY"), ("yuv422_yuy2", "YUYV"),
+                                             ("yuyv", "YUYV")])
+def test_packed_yuv_422_becomes_the_rgb_it_encodes(encoding: str, order: str) -> None:
+    rgb = blocky_rgb(6, 8)
+    got = image_to_rgb(array_to_image(packed_yuv422(rgb, order), encoding=encoding, frame_id="c", stamp=0.0))
+    assert got.shape == rgb.shape
+    assert np.abs(got.astype(int) - rgb).max() <= 3
+
+
+def test_nv21_becomes_the_rgb_it_encodes() -> None:
+    rgb = blocky_rgb(6, 8)
+    msg = array_to_image(nv21(rgb), encoding="nv21", frame_id="c", stamp=0.0)
+    assert (msg.height, msg.width, msg.step) == (6, 8, 8)
+    assert image_to_array(msg).shape == (9, 8)
+    assert np.abs(image_to_rgb(msg).astype(int) - rgb).max() <= 3
+
+
+@pytest.mark.parametrize("encoding, height, width, shown", [
+    ("yuv422", 4, 5, "even width"), ("nv21", 5, 8, "must be even"),
+])
+def test_odd_sizes_of_subsampled_encodings_are_refused_with_the_size_named(encoding, height, width, shown) -> None:
+    msg = Image(header=Header(stamp=Time(sec=1, nanosec=0), frame_id="c"), height=height, width=width,
+                encoding=encoding, is_bigendian=0, step=2 * width, data=np.zeros(4 * height * width, np.uint8))
+    with pytest.raises(ImageLayoutError, match=shown):
+        image_to_rgb(msg)
+
+
+def test_an_nv21_image_without_its_chroma_plane_is_refused() -> None:
+    msg = Image(header=Header(stamp=Time(sec=1, nanosec=0), frame_id="c"), height=4, width=4, encoding="nv21",
+                is_bigendian=0, step=4, data=np.zeros(16, np.uint8))  # the Y plane only
+    with pytest.raises(ImageLayoutError, match="fewer than step"):
+        image_to_array(msg)
+
+
+def test_an_unknown_encoding_lists_the_camera_native_ones_too() -> None:
+    msg = Image(header=Header(stamp=Time(sec=1, nanosec=0), frame_id="c"), height=2, width=2, encoding="bayer_xyzw8",
+                is_bigendian=0, step=2, data=np.zeros(4, np.uint8))
+    with pytest.raises(ImageEncodingError, match="bayer_rggb8.*nv21"):
+        image_to_rgb(msg)

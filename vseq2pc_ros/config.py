@@ -173,7 +173,7 @@ class NodeConfig:
     camera_info_topic: str = KITTI_TOPICS.camera_info[0]
     image_topic: str = KITTI_TOPICS.cameras[0]  # counted in diagnostics only; "" = not subscribed
     odom_topic: str = KITTI_TOPICS.odom
-    input_qos: str = "sensor_data"
+    input_qos: str = "best_available"  # lcpr_ros.qos
     model: ModelConfig = field(default_factory=ModelConfig)
     match: MatchConfig = field(default_factory=MatchConfig)
     sequence: SequenceParams = field(default_factory=SequenceParams)

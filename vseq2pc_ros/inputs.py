@@ -43,9 +43,9 @@ def labelled_cloud(msg: Any) -> tuple[np.ndarray, np.ndarray, int]:
                                             "(SemanticKITTI id per point, uint32) is required")
     if any(cloud.dtype[n].shape for n in ("x", "y", "z", "label")) or cloud.dtype["label"].kind not in "iu":
         raise InputRejected(CLOUD_BAD_LAYOUT, "x, y, z and label must be single values per point, label an integer")
-    points, keep = finite_points(cloud)
+    points, keep, nonfinite = finite_points(cloud)
     labels = cloud["label"][keep].astype(np.int64).astype(np.uint32)
-    return points, labels, int(keep.size - np.count_nonzero(keep))
+    return points, labels, nonfinite
 
 
 def depth_image(msg: Any) -> np.ndarray:

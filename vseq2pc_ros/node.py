@@ -16,7 +16,7 @@ import argparse
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import partial
 from typing import Any
@@ -27,7 +27,6 @@ from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
@@ -36,8 +35,8 @@ from lcpr_core.preprocess.structure import camera_feature, structure_feature
 from lcpr_core.vseq2pc import SequenceBuilder, Vseq2pcNet
 from lcpr_ros.diagnostics import DiagnosticsBuilder, Health
 from lcpr_ros.errors import ConfigError, InputRejected
-from lcpr_ros.node import CANDIDATE_QOS, RELIABLE_INPUT_QOS
 from lcpr_ros.poses import OdometryBuffer
+from lcpr_ros.qos import CANDIDATE_QOS, QOS_ADAPTED, SensorSubscription
 from lcpr_ros.mapstore import answer_save_request, save_under_lock
 from lcpr_ros.process import finish_and_save, run_node
 from lcpr_ros.ros_params import declare
@@ -118,9 +117,10 @@ class Vseq2pcNode(Node):
         self.builder = SequenceBuilder(cfg.sequence.builder())
         self._frame_index = 0
 
-        qos = RELIABLE_INPUT_QOS if cfg.input_qos == "reliable" else qos_profile_sensor_data
+        self._sensor_subscriptions: list[SensorSubscription] = []
+        self._input_qos = cfg.input_qos
         self.poses = OdometryBuffer(slop=cfg.sync.slop, max_gap=cfg.sync.odom_max_gap)
-        self.create_subscription(Odometry, cfg.odom_topic, self._on_odom, qos)  # first: poses before sensors
+        self._subscribe(Odometry, cfg.odom_topic, self._on_odom)  # first: poses before sensors
         self.pairs = ImagePairs(slop=cfg.sync.slop, capacity=cfg.sync.image_buffer)
         self.scan_queue = PoseQueue(self.poses, max_wait=cfg.sync.max_wait, capacity=cfg.sync.max_pending)
         self.camera_queue = PoseQueue(self.poses, max_wait=cfg.sync.max_wait, capacity=cfg.sync.max_pending)
@@ -133,12 +133,12 @@ class Vseq2pcNode(Node):
         self._diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._diagnostics = DiagnosticsBuilder(self.get_name())
 
-        self.create_subscription(CameraInfo, cfg.camera_info_topic, self._on_camera_info, qos)
-        self.create_subscription(PointCloud2, cfg.lidar_topic, self._on_cloud, qos)
-        self.create_subscription(Image, cfg.depth_topic, partial(self._on_image, "depth"), qos)
-        self.create_subscription(Image, cfg.labels_topic, partial(self._on_image, "labels"), qos)
+        self._subscribe(CameraInfo, cfg.camera_info_topic, self._on_camera_info)
+        self._subscribe(PointCloud2, cfg.lidar_topic, self._on_cloud)
+        self._subscribe(Image, cfg.depth_topic, partial(self._on_image, "depth"))
+        self._subscribe(Image, cfg.labels_topic, partial(self._on_image, "labels"))
         if cfg.image_topic:
-            self.create_subscription(Image, cfg.image_topic, lambda msg: self.rates.tick(cfg.image_topic), qos)
+            self._subscribe(Image, cfg.image_topic, lambda msg: self.rates.tick(cfg.image_topic))
         self.create_service(Trigger, "~/save_map", self._on_save_map)
         self.create_timer(RELEASE_PERIOD, self._release)
         self.create_timer(cfg.diagnostics.period, self._publish_diagnostics)
@@ -154,6 +154,10 @@ class Vseq2pcNode(Node):
     def _reject(self, err: InputRejected) -> None:
         self.drops.add(err.reason)
         self.warnings(err.reason, err.detail)
+
+    def _subscribe(self, msg_type: type, topic: str, callback: Callable[[Any], None]) -> None:
+        self._sensor_subscriptions.append(SensorSubscription(self, msg_type, topic, callback, self._input_qos,
+                                                             warn=lambda text: self.warnings(QOS_ADAPTED, text)))
 
     def _on_odom(self, msg: Odometry) -> None:
         self.rates.tick(self.settings.odom_topic)

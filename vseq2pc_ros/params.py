@@ -36,7 +36,9 @@ DOCS: dict[str, ParamDoc] = {
     "image_topic": ParamDoc("the colour image; only counted in /diagnostics (the network reads depth + labels); "
                             "empty = not subscribed"),
     "odom_topic": ParamDoc("nav_msgs/Odometry: poses at cloud and camera stamps (sequence distances, map poses)"),
-    "input_qos": ParamDoc("QoS of the sensor subscriptions: sensor_data (best effort) or reliable (bag replay)",
+    "input_qos": ParamDoc("QoS of the sensor subscriptions: best_available (the default: reliable with reliable "
+                          "publishers such as ros2 bag play, best effort with best-effort drivers), sensor_data "
+                          "(best effort) or reliable",
                           choices=INPUT_QOS),
     "model.sequence": ParamDoc("VSeq2PC sequence-model weights; empty (with model.descriptor empty) = seeded "
                                "random weights, testing only"),
