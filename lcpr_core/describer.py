@@ -17,7 +17,7 @@ import torch
 from .checkpoint import init_from_imagenet, load_weights
 from .errors import CheckpointError
 from .models import LCPR
-from .preprocess import LidarPreset, cameras_tensor, lidar_preset, range_image
+from .preprocess import CUSTOM, LidarGeometry, LidarPreset, cameras_tensor, lidar_preset, range_image
 from .preprocess.camera import CameraInput
 
 log = logging.getLogger(__name__)
@@ -36,7 +36,8 @@ class ModelConfig:
     seed: int = 0  # random initialisation seed, used when both files are ""
     num_cameras: int = 6
     image_size: tuple[int, int] = (256, 704)
-    lidar: str = "nuscenes_lidar_top"  # range-image preset (lcpr_core.preprocess.PRESETS)
+    lidar: str = "nuscenes_lidar_top"  # range-image preset (lcpr_core.preprocess.PRESETS), or "custom": lidar_geometry
+    lidar_geometry: LidarGeometry = field(default_factory=LidarGeometry)
     range_size: tuple[int, int] = (0, 0)  # range image (height, width) replacing the preset's; (0, 0) = the preset's
     width: float = 1.0  # channel multiplier (1.0 = released network; trained narrow models: 0.25-0.5)
     precision: str = "fp32"  # fp32 | bf16 (autocast)
@@ -47,7 +48,11 @@ class ModelConfig:
     def __post_init__(self) -> None:
         if self.precision not in PRECISIONS:
             raise ValueError(f"precision={self.precision!r}; accepted: {', '.join(PRECISIONS)}")
-        lidar_preset(self.lidar)  # raises with the accepted names
+        if self.lidar == CUSTOM:
+            if min(self.range_size) < 1:
+                raise ValueError(f"lidar='custom' needs range_size=(rows, columns); got {tuple(self.range_size)}")
+        else:
+            lidar_preset(self.lidar)  # raises with the accepted names
         if self.threads < 0:
             raise ValueError(f"threads={self.threads}; it must be >= 0 (0 = torch's default)")
         if not 0 < self.width <= 4:
@@ -57,6 +62,10 @@ class ModelConfig:
 
     @property
     def range_preset(self) -> LidarPreset:
+        if self.lidar == CUSTOM:
+            g = self.lidar_geometry
+            return LidarPreset(g.yaw_offset_deg, g.min_xy, g.fov_up_deg, g.fov_down_deg, int(self.range_size[0]),
+                               int(self.range_size[1]), g.max_range)
         preset = lidar_preset(self.lidar)
         if tuple(self.range_size) == (0, 0):
             return preset
@@ -89,7 +98,9 @@ def resolve_config(config: ModelConfig) -> ModelConfig:
     """``config`` with width, camera count and input sizes taken from its weights file's 'config' entry.
 
     The file wins: its network only loads at its own width and was trained at its own
-    sizes. Fields the caller set to something else than the default are logged.
+    sizes. Fields the caller set to something else than the default are logged. A
+    ``lidar = "custom"`` geometry is the caller's sensor and stays (its range image takes the
+    file's size).
     """
     if not config.weights:
         return config
@@ -101,6 +112,9 @@ def resolve_config(config: ModelConfig) -> ModelConfig:
         if key in ("image_size", "range_size"):
             value = tuple(int(v) for v in value)
         values[key] = value
+    if config.lidar == CUSTOM and "lidar" in values:
+        log.info("LCPR: %s was trained with LiDAR preset %r; using the custom model.lidar_geometry at its range "
+                 "image size", config.weights, values.pop("lidar"))
     defaults = ModelConfig()
     for key, value in values.items():
         given = getattr(config, key)

@@ -14,6 +14,7 @@ import dataclasses
 import json
 import math
 import os
+import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -493,7 +494,42 @@ def _check_windows(exclude_after: float | ArrayLike | None, q: int) -> np.ndarra
     return arr
 
 
+#: A member's data may claim at most this many times the archive's own size (deflate peaks near 1032:1).
+_MAX_EXPANSION = 1100
+
+
+def _check_member_sizes(where: str) -> None:
+    """Refuse, before numpy allocates anything, an array whose .npy header claims more bytes than its
+    member holds, or a member claiming more than the archive could hold (a damaged or forged file)."""
+    archive = os.path.getsize(where)
+    with zipfile.ZipFile(where) as zf:
+        for info in zf.infolist():
+            if info.file_size > _MAX_EXPANSION * max(archive, 1):
+                raise MapError(f"map file {where}: member {info.filename} claims {info.file_size} bytes, "
+                               f"impossible in a {archive}-byte archive")
+            with zf.open(info) as fh:
+                version = np.lib.format.read_magic(fh)
+                reader = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
+                    np.lib.format.read_array_header_2_0
+                shape, _, dtype = reader(fh)
+                if dtype.hasobject:
+                    raise MapError(f"map file {where}: member {info.filename} holds Python objects (pickle); "
+                                   "refused")
+                claimed = int(np.prod(shape, dtype=object)) * dtype.itemsize
+                held = info.file_size - fh.tell()
+                if claimed > held:
+                    raise MapError(f"map file {where}: member {info.filename} claims shape {tuple(shape)} "
+                                   f"{dtype} ({claimed} bytes) but holds {held}")
+
+
 def _read_npz(where: str) -> dict[str, np.ndarray]:
+    try:
+        if os.path.exists(where):
+            _check_member_sizes(where)
+    except MapError:
+        raise
+    except Exception as err:  # noqa: BLE001 - BadZipFile, ValueError from a damaged .npy header, OSError
+        raise MapError(f"map file {where} cannot be read as a descriptor map (.npz): {type(err).__name__}: {err}") from err
     try:
         npz = np.load(where, allow_pickle=False, mmap_mode=None)
     except FileNotFoundError as err:

@@ -163,6 +163,14 @@ class LoopDetector:
     def session_keyframes(self) -> int:
         return len(self._session_stamps)
 
+    def start_session(self) -> None:
+        """Header time went back (a bag played again, a simulator reset): the keyframes so far become an
+        earlier session, matched whatever their stamps, and keyframing and the order check start afresh."""
+        self._session_start = len(self.map)
+        self._session_stamps = []
+        self._last_stamp = -np.inf
+        self._last_position = None
+
     def process(self, frame: Frame) -> Result:
         """Decide on one frame; describe, match and store it when it becomes a keyframe."""
         reason = self._keyframe_reason(frame)

@@ -42,9 +42,10 @@ class SyncConfig:
     odom_max_gap: float = 1.0  # s: odometry neighbours at most this far apart are interpolated
     image_buffer: int = 16  # images kept per camera for matching
     max_pending: int = 8  # clouds waiting for images at most; older ones are dropped
+    jump_back: float = 5.0  # s: a stamp this much older than its stream's newest starts a new session; 0 = refuse
 
     def __post_init__(self) -> None:
-        require_finite_non_negative(self, "slop", "camera_timeout", "max_wait", "odom_max_gap")
+        require_finite_non_negative(self, "slop", "camera_timeout", "max_wait", "odom_max_gap", "jump_back")
         require(self.min_cameras >= 0, f"sync.min_cameras={self.min_cameras}; it must be >= 0")
         require(self.image_buffer >= 1, f"sync.image_buffer={self.image_buffer}; it must be >= 1")
         require(self.max_pending >= 1, f"sync.max_pending={self.max_pending}; it must be >= 1")

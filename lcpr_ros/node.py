@@ -41,7 +41,7 @@ from .process import finish_and_save, run_node
 from .ros_params import RuntimeParameters, declare
 from .stamps import NS_PER_S, stamp_ns
 from .stats import Counts, RateMeter, WarnOnce, Window
-from .sync import SyncedFrame, Synchroniser
+from .sync import TIME_JUMPED, SyncedFrame, Synchroniser
 from .worker import Worker
 
 NODE_NAME = "lcpr"
@@ -114,7 +114,7 @@ class LcprNode(Node):
         """
         if not cfg.odom_topic:
             return NoPoses(), NoMarkers()
-        buffer = OdometryBuffer(slop=cfg.sync.slop, max_gap=cfg.sync.odom_max_gap)
+        buffer = OdometryBuffer(slop=cfg.sync.slop, max_gap=cfg.sync.odom_max_gap, jump_back=cfg.sync.jump_back)
         self._subscribe(Odometry, cfg.odom_topic, partial(self._on_odom, buffer))
         return buffer, LoopMarkers(self.create_publisher(MarkerArray, "~/markers", CANDIDATE_QOS))
 
@@ -154,10 +154,17 @@ class LcprNode(Node):
         if removed:
             self.fixes.add(CLOUD_NAN, removed)
             self.warnings(CLOUD_NAN, f"{removed} of {removed + len(points)} points had NaN/inf x, y or z")
+        restarts = self.sync.restarts
         refused = self.sync.offer_cloud(ns, points)
         if refused is not None:
             self._reject(InputRejected(f"cloud: {refused}", f"stamp {ns / NS_PER_S:.9f}"))
             return
+        if self.sync.restarts > restarts:
+            self.fixes.add(TIME_JUMPED)
+            self.warnings(TIME_JUMPED, f"cloud stamp {ns / NS_PER_S:.3f} s is more than sync.jump_back = "
+                                       f"{self.settings.node.sync.jump_back} s before the last one (a bag played "
+                                       "again or with --loop, a simulator reset): a new session starts in the same "
+                                       "map, whose earlier keyframes stay matchable")
         self._release()
 
     def _on_odom(self, buffer: OdometryBuffer, msg: Odometry) -> None:
@@ -208,6 +215,8 @@ class LcprNode(Node):
         with self._detector_lock:
             if self._next_detector_config is not None:
                 self.detector.config, self._next_detector_config = self._next_detector_config, None
+            if synced.new_session:
+                self.detector.start_session()
             result = self.detector.process(frame)
             max_distance = self.detector.config.match.max_distance
         self.decisions.add(result.reason)

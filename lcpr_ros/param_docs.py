@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 from lcpr_core.describer import PRECISIONS
 from lcpr_core.descriptor_map import INDEX_TYPES
-from lcpr_core.preprocess import PRESETS
+from lcpr_core.preprocess import CUSTOM, PRESETS
 
 from .config import CAMERA_TYPES, INPUT_QOS
 
@@ -50,7 +50,13 @@ DOCS: dict[str, ParamDoc] = {
     "model.num_cameras": ParamDoc("cameras in the panorama; must equal the number of camera_topics", 1, 64),
     "model.image_size": ParamDoc("[height, width] each camera image is resized to; multiples of 32 "
                                  "(released: 256, 704)"),
-    "model.lidar": ParamDoc("range-image preset of the LiDAR", choices=tuple(sorted(PRESETS))),
+    "model.lidar": ParamDoc("range-image preset of the LiDAR, or custom (model.lidar_geometry.*, rows and "
+                            "columns from model.range_size)", choices=(*sorted(PRESETS), CUSTOM)),
+    "model.lidar_geometry.fov_up_deg": ParamDoc("deg, top of the vertical field of view (model.lidar custom)"),
+    "model.lidar_geometry.fov_down_deg": ParamDoc("deg, bottom of the vertical field of view (model.lidar custom)"),
+    "model.lidar_geometry.yaw_offset_deg": ParamDoc("deg about z that turns the cloud's x forward (model.lidar custom)"),
+    "model.lidar_geometry.max_range": ParamDoc("m, farther points are left out (model.lidar custom)"),
+    "model.lidar_geometry.min_xy": ParamDoc("m, half size of the ego box left out (model.lidar custom)"),
     "model.range_size": ParamDoc("[height, width] of the range image, multiples of 8; [0, 0] = the preset's"),
     "model.width": ParamDoc("channel multiplier of the network (1.0 = released; must match the weights)", 0.0, 4.0),
     "model.precision": ParamDoc("inference precision", choices=PRECISIONS),
@@ -100,6 +106,9 @@ DOCS: dict[str, ParamDoc] = {
                                   dynamic=True),
     "sync.image_buffer": ParamDoc("images kept per camera for matching", 1, 1000),
     "sync.max_pending": ParamDoc("clouds waiting for images at most; older ones are dropped", 1, 1000),
+    "sync.jump_back": ParamDoc("s: a header stamp this much older than its stream's newest (a bag played again, "
+                               "--loop, a simulator reset) starts a new session in the same map; 0 = refuse it "
+                               "as out of order", 0.0, 86400.0),
     # ---- diagnostics
     "diagnostics.period": ParamDoc("s between /diagnostics messages", 0.05, 3600.0),
     "diagnostics.window": ParamDoc("latest frames in the latency percentiles", 1, 100000),

@@ -31,6 +31,9 @@ class PoseSource(Protocol):
     def configure(self, *, slop: float, max_gap: float) -> None:
         """Change the matching tolerances."""
 
+    def restart(self, after_ns: int) -> None:
+        """Time went back: forget poses stamped after ``after_ns`` (another timeline's)."""
+
 
 class NoPoses:
     """No odometry topic: every pose is unknown."""
@@ -52,13 +55,16 @@ class NoPoses:
     def configure(self, *, slop: float, max_gap: float) -> None:
         return None
 
+    def restart(self, after_ns: int) -> None:
+        return None
+
 
 class OdometryBuffer:
     """Recent odometry poses; a pose at any stamp by interpolation (msg_tools' rule)."""
 
     expected = True
 
-    def __init__(self, *, slop: float, max_gap: float, capacity: int = 4096,
+    def __init__(self, *, slop: float, max_gap: float, capacity: int = 4096, jump_back: float = 0.0,
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.frame_id = ""
         self._clock = clock
@@ -66,7 +72,7 @@ class OdometryBuffer:
         self._stamps: list[int] = []
         self._poses: list[np.ndarray] = []
         self._capacity = capacity
-        self._order = StampOrder()
+        self._order = StampOrder(round(jump_back * NS_PER_S))  # see StampOrder: a new timeline
         self.configure(slop=slop, max_gap=max_gap)
 
     def configure(self, *, slop: float, max_gap: float) -> None:
@@ -89,6 +95,9 @@ class OdometryBuffer:
         refused = self._order.check(stamp_ns)
         if refused is not None:
             return refused
+        if self._order.jumped_from is not None:
+            self.restart(stamp_ns - 1)
+            self._order.last = stamp_ns
         self.frame_id = frame_id
         self._last_arrival = self._clock()
         self._stamps.append(stamp_ns)
@@ -97,6 +106,12 @@ class OdometryBuffer:
             del self._stamps[: self._capacity]
             del self._poses[: self._capacity]
         return None
+
+    def restart(self, after_ns: int) -> None:
+        keep = bisect.bisect_right(self._stamps, after_ns)
+        del self._stamps[keep:]
+        del self._poses[keep:]
+        self._order.last = self._stamps[-1] if self._stamps else None
 
     def pose_at(self, stamp_ns: int) -> np.ndarray | None:
         if not self._stamps:

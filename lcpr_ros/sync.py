@@ -37,6 +37,7 @@ from .stamps import NS_PER_S, StampOrder
 
 NO_CAMERA = "frame: no camera"
 BACKLOG = "frame: sync backlog"
+TIME_JUMPED = "cloud: time jumped back, new session"
 
 
 @dataclass
@@ -49,6 +50,7 @@ class SyncedFrame:
     pose: np.ndarray | None
     arrival: float  # clock() when its cloud arrived
     stopped: tuple[int, ...]  # cameras counted as stopped for this frame
+    new_session: bool = False  # the first frame after header time jumped back (see StampOrder)
 
 
 @dataclass
@@ -56,6 +58,7 @@ class _Cloud:
     stamp_ns: int
     points: np.ndarray
     arrival: float
+    new_session: bool = False
 
 
 class Synchroniser:
@@ -73,6 +76,8 @@ class Synchroniser:
         self._arrivals: list[float | None] = [None] * num_cameras  # clock() of each camera's newest image
         self._image_order = [StampOrder() for _ in range(num_cameras)]
         self._cloud_order = StampOrder()
+        self.restarts = 0  # times header time jumped back on the cloud stream
+        self._carry_session = False  # a new-session frame was dropped: the next released frame starts it
         self._pending: deque[_Cloud] = deque()
         self._first_cloud: int | None = None
         self.drops: Counter[str] = Counter()  # frames dropped by the synchroniser, by reason
@@ -89,6 +94,8 @@ class Synchroniser:
         self._config = config
         self._slop_ns = round(config.slop * NS_PER_S)
         self._timeout_ns = round(config.camera_timeout * NS_PER_S)
+        for order in (*self._image_order, self._cloud_order):
+            order.jump_back_ns = round(config.jump_back * NS_PER_S)
         for k, images in enumerate(self._images):
             if images.maxlen != config.image_buffer:
                 self._images[k] = deque(images, maxlen=config.image_buffer)
@@ -111,6 +118,9 @@ class Synchroniser:
         """Buffer one camera image; returns why it was refused, or None."""
         refused = self._image_order[camera].check(stamp_ns)
         if refused is None:
+            if self._image_order[camera].jumped_from is not None:
+                self._forget_images(camera, after_ns=stamp_ns - 1)
+                self._image_order[camera].last = stamp_ns
             self._images[camera].append((stamp_ns, payload))
             self._arrivals[camera] = self._clock()
         return refused
@@ -120,11 +130,19 @@ class Synchroniser:
         refused = self._cloud_order.check(stamp_ns)
         if refused is not None:
             return refused
+        new_session = self._cloud_order.jumped_from is not None
+        if new_session:  # another timeline: what was buffered after this stamp belongs to the old one
+            self.restarts += 1
+            self._first_cloud = None
+            self._pending = deque(c for c in self._pending if c.stamp_ns < stamp_ns)
+            for k in range(self.num_cameras):
+                self._forget_images(k, after_ns=stamp_ns + self._slop_ns)
+            self._poses.restart(stamp_ns + self._slop_ns)
         if self._first_cloud is None:
             self._first_cloud = stamp_ns
-        self._pending.append(_Cloud(stamp_ns, points, self._clock()))
+        self._pending.append(_Cloud(stamp_ns, points, self._clock(), new_session))
         while len(self._pending) > self._config.max_pending:
-            self._pending.popleft()
+            self._carry_session |= self._pending.popleft().new_session
             self.drops[BACKLOG] += 1
         return None
 
@@ -143,15 +161,26 @@ class Synchroniser:
             cameras = [payload for _, payload, _ in picks]
             if sum(c is not None for c in cameras) < self._config.min_cameras:
                 self.drops[NO_CAMERA] += 1
+                self._carry_session |= cloud.new_session
                 continue
             for k, payload in enumerate(cameras):
                 if payload is None:
                     self.missing[k] += 1
             stopped = tuple(k for k, (_, _, is_stopped) in enumerate(picks) if is_stopped)
             self.released += 1
+            new_session = cloud.new_session or self._carry_session
+            self._carry_session = False
             out.append(SyncedFrame(cloud.stamp_ns, cameras, cloud.points, self._poses.pose_at(cloud.stamp_ns),
-                                   cloud.arrival, stopped))
+                                   cloud.arrival, stopped, new_session))
         return out
+
+    def _forget_images(self, camera: int, *, after_ns: int) -> None:
+        """Drop one camera's images stamped after ``after_ns``; its order check restarts from what is left."""
+        images = self._images[camera]
+        kept = [item for item in images if item[0] <= after_ns]
+        images.clear()
+        images.extend(kept)
+        self._image_order[camera].last = kept[-1][0] if kept else None
 
     def _pick(self, camera: int, stamp_ns: int, now: float) -> tuple[bool, Any | None, bool]:
         """(decided, payload or None, stopped) of one camera for a cloud stamp."""

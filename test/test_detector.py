@@ -111,6 +111,21 @@ def test_entries_of_a_prior_session_are_never_excluded_by_time():
     assert r.keyframe_id == 5
 
 
+def test_after_start_session_earlier_stamps_are_keyframes_and_the_first_pass_matches_at_once():
+    """A bag played twice: the second pass restarts at the first pass's stamps."""
+    det = detector()
+    for t in range(5):
+        det.process(frame(100.0 + t, float(t)))
+    assert det.process(frame(100.0, 0.0)).reason == "out of order"
+    det.start_session()
+    r = det.process(frame(100.0, 0.0))  # the same stamp and place again, 0 s "later"
+    assert r.reason == "keyframe" and r.loop is not None and r.loop.match_id == 0
+    assert det.session_keyframes == 1 and len(det.map) == 6
+    r = det.process(frame(101.0, 1.0))
+    assert r.loop is not None and r.loop.match_id == 1  # the first pass is an earlier session: never excluded
+    assert all(c.match_id != 5 for c in r.candidates)  # this session's own keyframes still are (< 30 s)
+
+
 def test_a_candidate_from_a_frame_with_a_dark_camera_is_flagged_degraded():
     det = detector()
     det.process(frame(0.0, 7.0))

@@ -147,3 +147,49 @@ def test_with_the_default_input_qos_a_best_effort_driver_is_heard_too(ros: Ros) 
     finally:
         for p in [*cameras, lidar]:
             ros.driver.destroy_publisher(p)
+
+
+def test_a_bag_played_again_starts_a_new_session_that_closes_loops_to_the_first_pass(ros: Ros) -> None:
+    """Header time jumps back 60 s (ros2 bag play --loop, a simulator reset): no frame is refused as out of
+    order, one warning names the cause, and the second pass of a place matches its first pass at once."""
+    from lcpr_ros.sync import TIME_JUMPED
+
+    first = T0 + 100_000.0
+    places = [synthetic_place(2), synthetic_place(3)]
+    ids = []
+    for i, place in enumerate(places):
+        xyz = np.stack([place.cloud[a] for a in "xyz"], axis=1).astype(np.float64)
+        stamp = first + 60.0 * i
+        publish(ros, place.rgb, "rgb8", driver_cloud(LAYOUTS["velodyne_vlp16"], xyz, np.ones(len(xyz), bool),
+                                                     stamp=stamp, rclpy_types=True), stamp)
+        ids.append(len(ros.node.detector.map) - 1)
+    loops_before = ros.node.loops
+    xyz = np.stack([places[0].cloud[a] for a in "xyz"], axis=1).astype(np.float64)
+    replay = first  # the bag starts over: 60 s back, the first place again
+    publish(ros, places[0].rgb, "rgb8", driver_cloud(LAYOUTS["velodyne_vlp16"], xyz, np.ones(len(xyz), bool),
+                                                     stamp=replay, rclpy_types=True), replay)
+    assert ros.node.fixes[TIME_JUMPED] == 1 and TIME_JUMPED in ros.node.warnings.causes
+    assert not any("out of order" in k for k in ros.node.drops.snapshot()), ros.node.drops.snapshot()
+    assert ros.node.decisions.snapshot().get("out of order", 0) == 0
+    assert wait_until(lambda: ros.node.loops > loops_before, 10)
+    assert len(ros.node.detector.map) == ids[-1] + 2  # the replayed frame is a keyframe of the new session
+
+
+def test_100_mb_of_garbage_on_a_camera_topic_is_refused_and_the_node_goes_on(ros: Ros) -> None:
+    """An Image whose fields are nonsense and whose data is 100 MB of random bytes."""
+    from lcpr_ros import inputs
+
+    rng = np.random.default_rng(0)
+    garbage = Image(encoding="\x93\x07garbage", height=0xFFFFFFFF, width=0xFFFFFFFF, step=7,
+                    data=rng.integers(0, 256, 100 * 2**20, dtype=np.uint8).tobytes())
+    garbage.header.stamp.sec = int(T0 + 200_000)
+    size, dropped = len(ros.node.detector.map), ros.node.drops[inputs.IMAGE_ENCODING]
+    ros.cameras[0].publish(garbage)
+    assert wait_until(lambda: ros.node.drops[inputs.IMAGE_ENCODING] > dropped, 60)
+    assert "garbage" in ros.node.warnings.causes or inputs.IMAGE_ENCODING in ros.node.warnings.causes
+    place = synthetic_place(4)
+    xyz = np.stack([place.cloud[a] for a in "xyz"], axis=1).astype(np.float64)
+    stamp = T0 + 200_001.0
+    publish(ros, place.rgb, "rgb8", driver_cloud(LAYOUTS["velodyne_vlp16"], xyz, np.ones(len(xyz), bool),
+                                                 stamp=stamp, rclpy_types=True), stamp)
+    assert len(ros.node.detector.map) == size + 1  # still up, the map kept and growing

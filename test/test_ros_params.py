@@ -156,3 +156,43 @@ def test_run_time_changes_are_validated_by_building_the_config(context) -> None:
 
 def test_build_keeps_defaults_for_absent_names() -> None:
     assert build(SyncConfig, {"sync.slop": 0.1}, "sync.") == SyncConfig(slop=0.1)
+
+
+def test_a_lidar_no_preset_knows_is_described_by_parameters_alone() -> None:
+    """model.lidar custom + model.lidar_geometry.* + model.range_size: the range image follows them."""
+    import numpy as np
+
+    from lcpr_core.preprocess import LidarPreset, range_image
+
+    values = {leaf.name: leaf.default for leaf in all_leaves()}
+    values.update({"model.lidar": "custom", "model.range_size": [24, 512], "model.lidar_geometry.fov_up_deg": 2.0,
+                   "model.lidar_geometry.fov_down_deg": -24.9, "model.lidar_geometry.yaw_offset_deg": 90.0,
+                   "model.lidar_geometry.max_range": 150.0, "model.lidar_geometry.min_xy": 0.5})
+    preset = settings_from(values).detector.model.range_preset
+    assert preset == LidarPreset(yaw_offset_deg=90.0, min_xy=0.5, fov_up_deg=2.0, fov_down_deg=-24.9, height=24,
+                                 width=512, max_range=150.0)
+    points = np.random.default_rng(0).uniform(-100, 100, (5000, 3)) * [1, 1, 0.1]
+    image = range_image(points, preset=preset)
+    assert image.shape == (24, 512) and image.max() < 150.0 and image.max() > 80.0  # 80 m: the default would cut
+
+
+@pytest.mark.parametrize(("changes", "reason"), [
+    ({"model.lidar": "custom"}, "needs range_size"),
+    ({"model.lidar": "custom", "model.range_size": [16, 256], "model.lidar_geometry.fov_up_deg": -40.0},
+     "lidar_geometry.fov_up_deg=-40.0 must be above"),
+    ({"model.lidar": "custom", "model.range_size": [16, 256], "model.lidar_geometry.max_range": 0.0},
+     "lidar_geometry.max_range=0.0"),
+])
+def test_an_inconsistent_custom_lidar_is_refused_naming_the_value(changes: dict, reason: str) -> None:
+    values = {leaf.name: leaf.default for leaf in all_leaves()}
+    values.update(changes)
+    with pytest.raises(ConfigError, match=reason.replace(".", r"\.").replace("[", r"\[")):
+        settings_from(values)
+
+
+@pytest.mark.parametrize("preset", ["ouster_os1_64", "ouster_os1_128", "ouster_os2_128", "hesai_pandar64"])
+def test_the_ouster_and_hesai_presets_are_accepted_parameter_values(preset: str) -> None:
+    values = {leaf.name: leaf.default for leaf in all_leaves()}
+    values["model.lidar"] = preset
+    got = settings_from(values).detector.model.range_preset
+    assert got.fov_up_deg > got.fov_down_deg and got.height in (64, 128)

@@ -299,3 +299,71 @@ def test_rates_count_messages_per_second_over_the_window() -> None:
         meter.tick("a")
     assert meter.rates()["a"] == pytest.approx(2.5)  # 5 ticks within the last 2 s
     assert meter.totals["a"] == 10
+
+
+# ---------------------------------------------------------------------- header time going back
+def test_a_cloud_far_older_than_the_last_starts_a_new_timeline_instead_of_being_refused() -> None:
+    """A bag played again: stamps restart 90 s back. The frame is taken and marked as a new session."""
+    sync = make_sync(2, jump_back=5.0)
+    for t in (100, 101):
+        for k in range(2):
+            sync.offer_image(k, t * S, f"old{k}@{t}")
+        assert sync.offer_cloud(t * S, POINTS) is None
+    assert [f.new_session for f in sync.ready()] == [False, False]
+    for k in range(2):
+        assert sync.offer_image(k, 10 * S, f"new{k}@10") is None  # the images restart too
+    assert sync.offer_cloud(10 * S, POINTS) is None
+    (frame,) = sync.ready()
+    assert frame.new_session and frame.stamp_ns == 10 * S and frame.cameras == ["new0@10", "new1@10"]
+    assert sync.restarts == 1
+    for k in range(2):
+        sync.offer_image(k, 11 * S, f"new{k}@11")
+    sync.offer_cloud(11 * S, POINTS)
+    (frame,) = sync.ready()
+    assert not frame.new_session and frame.cameras == ["new0@11", "new1@11"]
+
+
+def test_when_the_cloud_jumps_back_first_the_old_timeline_images_are_forgotten() -> None:
+    sync = make_sync(1, jump_back=5.0, max_wait=10.0, camera_timeout=100.0)
+    sync.offer_image(0, 100 * S, "old")
+    sync.offer_cloud(100 * S, POINTS)
+    sync.ready()
+    assert sync.offer_cloud(10 * S, POINTS) is None  # no new image yet: the frame waits for one
+    assert sync.ready() == []
+    assert sync.offer_image(0, 10 * S, "new") is None  # not refused as out of order: 100 s was forgotten
+    (frame,) = sync.ready()
+    assert frame.cameras == ["new"] and frame.new_session
+
+
+def test_a_step_back_shorter_than_jump_back_is_still_out_of_order_and_zero_refuses_every_jump() -> None:
+    sync = make_sync(1, jump_back=5.0)
+    sync.offer_cloud(100 * S, POINTS)
+    assert sync.offer_cloud(96 * S, POINTS) == OUT_OF_ORDER
+    strict = make_sync(1, jump_back=0.0)
+    strict.offer_cloud(100 * S, POINTS)
+    assert strict.offer_cloud(10 * S, POINTS) == OUT_OF_ORDER and strict.restarts == 0
+
+
+def test_the_new_session_mark_survives_a_frame_dropped_for_missing_cameras() -> None:
+    sync = make_sync(1, jump_back=5.0, min_cameras=1, max_wait=0.0, camera_timeout=100.0)
+    sync.offer_image(0, 100 * S, "old")
+    sync.offer_cloud(100 * S, POINTS)
+    sync.ready()
+    sync.offer_cloud(10 * S, POINTS)  # its image never comes: dropped ("no camera")
+    assert sync.ready() == [] and sync.drops[NO_CAMERA] == 1
+    sync.offer_image(0, 11 * S, "new")
+    sync.offer_cloud(11 * S, POINTS)
+    (frame,) = sync.ready()
+    assert frame.new_session and frame.stamp_ns == 11 * S
+
+
+def test_odometry_that_jumps_back_forgets_the_old_timeline_and_interpolates_the_new() -> None:
+    odom = OdometryBuffer(slop=0.05, max_gap=1.0, jump_back=5.0)
+    for t in (100, 101):
+        assert odom.offer(t * S, np.eye(4), "odom") is None
+    for t, x in ((10, 0.0), (11, 4.0)):
+        pose = np.eye(4)
+        pose[0, 3] = x
+        assert odom.offer(t * S, pose, "odom") is None
+    assert len(odom) == 2 and odom.newest == 11 * S
+    assert odom.pose_at(10 * S + S // 2)[0, 3] == pytest.approx(2.0)

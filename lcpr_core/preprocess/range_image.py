@@ -27,6 +27,28 @@ class LidarPreset:
     max_range: float
 
 
+@dataclass(frozen=True)
+class LidarGeometry:
+    """The geometry of a LiDAR no preset knows (``lidar = "custom"``; rows and columns: ``range_size``).
+
+    Defaults: a 32-beam +10 / -30 deg sensor in a REP-103 frame. ``yaw_offset_deg`` turns the
+    cloud about z so that x points forward; ``min_xy`` drops the ego box; ``max_range`` in m.
+    """
+
+    fov_up_deg: float = 10.0
+    fov_down_deg: float = -30.0
+    yaw_offset_deg: float = 0.0
+    max_range: float = 80.0
+    min_xy: float = 2.0
+
+    def __post_init__(self) -> None:
+        values = dataclasses.astuple(self)
+        if not all(np.isfinite(values)):
+            raise ValueError(f"lidar_geometry {self}: every value must be finite")
+        _check_config(LidarPreset(self.yaw_offset_deg, self.min_xy, self.fov_up_deg, self.fov_down_deg, 1, 1,
+                                  self.max_range), prefix="lidar_geometry.")
+
+
 PRESETS: dict[str, LidarPreset] = {
     # nuScenes LIDAR_TOP (x right, y forward): the released LCPR configuration.
     "nuscenes_lidar_top": LidarPreset(-90.0, 2.0, 10.0, -30.0, 32, 1056, 80.0),
@@ -34,7 +56,16 @@ PRESETS: dict[str, LidarPreset] = {
     "kitti_hdl64e": LidarPreset(0.0, 2.0, 3.0, -25.0, 64, 1056, 80.0),
     # Velodyne VLP-16 (Puck), REP-103 frame.
     "velodyne_vlp16": LidarPreset(0.0, 1.0, 15.0, -15.0, 16, 1056, 80.0),
+    # Ouster OS1-64 / OS1-128 (45 deg vertical field of view) and OS2-128 (22.5 deg), cloud in
+    # ouster-ros' os_sensor frame (x forward, REP-103).
+    "ouster_os1_64": LidarPreset(0.0, 1.0, 22.5, -22.5, 64, 1056, 100.0),
+    "ouster_os1_128": LidarPreset(0.0, 1.0, 22.5, -22.5, 128, 1056, 100.0),
+    "ouster_os2_128": LidarPreset(0.0, 2.0, 11.25, -11.25, 128, 1056, 200.0),
+    # Hesai Pandar64 (+15 / -25 deg), REP-103 frame.
+    "hesai_pandar64": LidarPreset(0.0, 2.0, 15.0, -25.0, 64, 1056, 200.0),
 }
+#: ``lidar`` value that takes the geometry from explicit settings instead of a preset.
+CUSTOM = "custom"
 
 
 def lidar_preset(name: str) -> LidarPreset:
@@ -112,12 +143,12 @@ def rotate_z(points: np.ndarray, angle_deg: float) -> np.ndarray:
     return out
 
 
-def _check_config(cfg: LidarPreset) -> None:
+def _check_config(cfg: LidarPreset, *, prefix: str = "") -> None:
     if cfg.height < 1 or cfg.width < 1:
         raise ValueError(f"range image size {cfg.height} x {cfg.width}; both must be positive")
     if not cfg.fov_up_deg > cfg.fov_down_deg:
-        raise ValueError(f"fov_up_deg={cfg.fov_up_deg} must be above fov_down_deg={cfg.fov_down_deg}")
+        raise ValueError(f"{prefix}fov_up_deg={cfg.fov_up_deg} must be above {prefix}fov_down_deg={cfg.fov_down_deg}")
     if not cfg.max_range > 0:
-        raise ValueError(f"max_range={cfg.max_range}; it must be positive (metres)")
+        raise ValueError(f"{prefix}max_range={cfg.max_range}; it must be positive (metres)")
     if cfg.min_xy < 0:
-        raise ValueError(f"min_xy={cfg.min_xy}; it must be >= 0 (metres)")
+        raise ValueError(f"{prefix}min_xy={cfg.min_xy}; it must be >= 0 (metres)")
