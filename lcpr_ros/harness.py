@@ -8,13 +8,17 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2
@@ -107,6 +111,26 @@ class FramePublisher:
             if k not in skip_cameras:
                 pub.publish(self.image_msg(place, k, stamp))
         self.lidar.publish(self.cloud_msg(place, stamp))
+
+
+@contextmanager
+def spinning(context: Context, node: Any, driver: Node) -> Iterator[SingleThreadedExecutor]:
+    """Spin a node under test (one with ``close()``) and a driver node in a background thread; on leaving,
+    close the node (its worker finishes), stop the executor and shut ``context`` down."""
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    executor.add_node(driver)
+    thread = threading.Thread(target=executor.spin, daemon=True)
+    thread.start()
+    try:
+        yield executor
+    finally:
+        node.close()
+        executor.shutdown(timeout_sec=5)
+        thread.join(5)
+        node.destroy_node()
+        driver.destroy_node()
+        rclpy.try_shutdown(context=context)
 
 
 def wait_until(condition: Callable[[], bool], timeout: float = 60.0, *, period: float = 0.02) -> bool:

@@ -41,11 +41,15 @@ from .process import finish_and_save, run_node
 from .ros_params import RuntimeParameters, declare
 from .stamps import NS_PER_S, stamp_ns
 from .stats import Counts, RateMeter, WarnOnce, Window
-from .sync import TIME_JUMPED, SyncedFrame, Synchroniser
+from .sync import LATE_IMAGE, TIME_JUMPED, SyncedFrame, Synchroniser
 from .worker import Worker
 
 NODE_NAME = "lcpr"
 BUSY = "frame: replaced while busy"
+LATE_IMAGE_HELP = ("{topic}: an image came after its frame had gone without it (lost in transport, then repaired). "
+                   "The usual cause: a process that publishes images and clouds through Fast DDS's default 512 KiB "
+                   "shared-memory segment. Give that publisher a larger segment (README: Fast DDS), or run this node "
+                   "with FASTDDS_BUILTIN_TRANSPORTS=UDPv4 so that it is sent its own copy")
 FAILED = "frame: processing failed"
 RELEASE_PERIOD = 0.05  # s between checks for clouds whose wait for images ran out
 SHUTDOWN_TIMEOUT = 60.0  # s the worker may take to finish its frames at shutdown
@@ -137,10 +141,13 @@ class LcprNode(Node):
             self._reject(InputRejected(err.reason, f"{topic}: {err.detail}"))
             return
         ns = stamp_ns(msg.header)
+        late = self.sync.late[camera]
         refused = self.sync.offer_image(camera, ns, payload)
         if refused is not None:
             self._reject(InputRejected(f"image: {refused}", f"{topic} stamp {ns / NS_PER_S:.9f}"))
             return
+        if self.sync.late[camera] > late:
+            self._reject(InputRejected(LATE_IMAGE, LATE_IMAGE_HELP.format(topic=topic)))
         self._release()
 
     def _on_cloud(self, msg: PointCloud2) -> None:

@@ -16,6 +16,11 @@ With odometry, the pose is decided the same way: a pose stamped at or after the
 cloud, or odometry stopped by the same rule (odometry computed from the cloud itself
 arrives after it). A cloud whose cameras or pose are not all decided waits at most
 ``max_wait`` seconds of wall time (messages in flight), then goes with what is there.
+An image that arrives after its frame went without it is counted per camera (``late``):
+the mark of samples lost in transport and repaired seconds later (a process that
+publishes images and clouds through Fast DDS's default 512 KiB shared-memory segment).
+Waiting longer for such repairs was measured to help nothing (benchmarks/
+single_process_publisher.py): frames then arrive in bursts and the worker drops them.
 At most ``max_pending`` clouds wait; the oldest is dropped beyond that. Duplicate and
 out-of-order stamps are refused per stream.
 """
@@ -36,6 +41,7 @@ from .poses import NoPoses, PoseSource
 from .stamps import NS_PER_S, StampOrder
 
 NO_CAMERA = "frame: no camera"
+LATE_IMAGE = "image: arrived after its frame"
 BACKLOG = "frame: sync backlog"
 TIME_JUMPED = "cloud: time jumped back, new session"
 
@@ -78,6 +84,8 @@ class Synchroniser:
         self._cloud_order = StampOrder()
         self.restarts = 0  # times header time jumped back on the cloud stream
         self._carry_session = False  # a new-session frame was dropped: the next released frame starts it
+        self._released_without: deque[tuple[int, frozenset[int]]] = deque(maxlen=64)  # (stamp, cameras missing)
+        self.late = [0] * num_cameras  # images that came after their frame was released without them
         self._pending: deque[_Cloud] = deque()
         self._first_cloud: int | None = None
         self.drops: Counter[str] = Counter()  # frames dropped by the synchroniser, by reason
@@ -121,6 +129,9 @@ class Synchroniser:
             if self._image_order[camera].jumped_from is not None:
                 self._forget_images(camera, after_ns=stamp_ns - 1)
                 self._image_order[camera].last = stamp_ns
+            if any(camera in missing and abs(stamp_ns - released) <= self._slop_ns
+                   for released, missing in self._released_without):
+                self.late[camera] += 1
             self._images[camera].append((stamp_ns, payload))
             self._arrivals[camera] = self._clock()
         return refused
@@ -166,6 +177,8 @@ class Synchroniser:
             for k, payload in enumerate(cameras):
                 if payload is None:
                     self.missing[k] += 1
+            if any(payload is None for payload in cameras):
+                self._released_without.append((cloud.stamp_ns, frozenset(k for k, c in enumerate(cameras) if c is None)))
             stopped = tuple(k for k, (_, _, is_stopped) in enumerate(picks) if is_stopped)
             self.released += 1
             new_session = cloud.new_session or self._carry_session

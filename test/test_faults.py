@@ -68,17 +68,22 @@ def test_a_map_whose_arrays_claim_absurd_sizes_is_refused_before_allocating(tmp_
         DescriptorMap.load(path)
 
 
-def test_a_full_disk_during_save_keeps_the_old_map_and_raises_with_the_cause(tmp_path: Path,
-                                                                              monkeypatch: pytest.MonkeyPatch) -> None:
-    path = tmp_path / "map.npz"
-    a_map(20).save(path)
-    before = path.read_bytes()
-
+def fill_the_disk(monkeypatch: pytest.MonkeyPatch) -> None:
+    """From now on every map write fails as on a full disk (ENOSPC)."""
     def full(*args: object, **kwargs: object) -> None:
         raise OSError(errno.ENOSPC, "No space left on device")
     monkeypatch.setattr(np, "savez", full)
+
+
+def test_a_full_disk_during_save_keeps_the_old_map_and_raises_with_the_cause(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = tmp_path / "map.npz"
+    a_map(20).save(path)
+    before = path.read_bytes()
+    fill_the_disk(monkeypatch)
     with pytest.raises((MapError, OSError), match="No space left"):
         a_map(40, seed=1).save(path)
+    monkeypatch.undo()
     assert path.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["map.npz"]  # no temporary file left behind
     assert len(DescriptorMap.load(path)) == 20
@@ -143,11 +148,8 @@ def test_the_save_map_service_answers_a_full_disk_with_the_cause_and_the_old_map
     path = tmp_path / "map.npz"
     a_map(20).save(path)
     before = path.read_bytes()
-
-    def full(*args: object, **kwargs: object) -> None:
-        raise OSError(errno.ENOSPC, "No space left on device")
-    monkeypatch.setattr(np, "savez", full)
     logged: list[str] = []
+    fill_the_disk(monkeypatch)
     response = answer_save_request(SimpleNamespace(success=None, message=""), lambda: save_map(a_map(40), str(path)),
                                    what="places", path=str(path), log=logged.append)
     assert response.success is False and "No space left on device" in response.message and str(path) in response.message

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import random
-import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -10,14 +9,13 @@ import numpy as np
 import pytest
 import rclpy
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import Image, PointCloud2
 
 from camera_encodings import mosaic, nv21, packed_yuv422
 from driver_layouts import LAYOUTS, driver_cloud
-from lcpr_ros.harness import SENSOR_PUB_QOS, synthetic_place, wait_until
+from lcpr_ros.harness import SENSOR_PUB_QOS, spinning, synthetic_place, wait_until
 from lcpr_ros.node import LcprNode
 from msg_tools import array_to_image
 
@@ -45,23 +43,11 @@ def ros() -> Iterator[Ros]:
               "sync.camera_timeout": 5.0, "keyframe.min_interval": 0.0, "verify.enabled": False}
     node = LcprNode(context=context, parameter_overrides=[Parameter(k, value=v) for k, v in values.items()])
     driver = rclpy.create_node("camera_driver", context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    executor.add_node(driver)
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
-    cameras = [driver.create_publisher(Image, t, SENSOR_PUB_QOS) for t in CAMERAS]
-    lidar = driver.create_publisher(PointCloud2, LIDAR, SENSOR_PUB_QOS)
-    assert wait_until(lambda: all(p.get_subscription_count() for p in [*cameras, lidar]), 20)
-    try:
+    with spinning(context, node, driver):
+        cameras = [driver.create_publisher(Image, t, SENSOR_PUB_QOS) for t in CAMERAS]
+        lidar = driver.create_publisher(PointCloud2, LIDAR, SENSOR_PUB_QOS)
+        assert wait_until(lambda: all(p.get_subscription_count() for p in [*cameras, lidar]), 20)
         yield Ros(node, driver, cameras, lidar)
-    finally:
-        node.close()
-        executor.shutdown(timeout_sec=5)
-        thread.join(5)
-        node.destroy_node()
-        driver.destroy_node()
-        rclpy.try_shutdown(context=context)
 
 
 def as_encoding(rgb: np.ndarray, encoding: str, stamp: float) -> Image:

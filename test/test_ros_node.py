@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import random
-import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -34,6 +33,7 @@ from lcpr_ros.harness import (
     image_of_wrong_size,
     image_with_unknown_encoding,
     pose_at_x,
+    spinning,
     synthetic_place,
     truncated_cloud,
     wait_until,
@@ -90,27 +90,15 @@ def ros(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Ros]:
     map_path = tmp_path_factory.mktemp("map") / "lcpr_map.npz"
     node = LcprNode(context=context, parameter_overrides=small_model(**{"map.path": str(map_path)}))
     driver = rclpy.create_node("driver", context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    executor.add_node(driver)
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
-    markers: list[MarkerArray] = []
-    driver.create_subscription(MarkerArray, "/lcpr/markers", markers.append, CANDIDATE_QOS)
-    pub = FramePublisher(driver, CAMERAS, LIDAR, odom_topic=ODOM)
-    listener = OutputListener(driver)
-    pub.wait_for_subscribers()
-    listener.wait_for_publishers()
-    try:
+    with spinning(context, node, driver) as executor:
+        markers: list[MarkerArray] = []
+        driver.create_subscription(MarkerArray, "/lcpr/markers", markers.append, CANDIDATE_QOS)
+        pub = FramePublisher(driver, CAMERAS, LIDAR, odom_topic=ODOM)
+        listener = OutputListener(driver)
+        pub.wait_for_subscribers()
+        listener.wait_for_publishers()
         yield Ros(context, node, driver, pub, listener, markers, map_path, [synthetic_place(i) for i in range(3)], {},
                   executor)
-    finally:
-        node.close()
-        executor.shutdown(timeout_sec=5)
-        thread.join(5)
-        node.destroy_node()
-        driver.destroy_node()
-        rclpy.try_shutdown(context=context)
 
 
 def test_an_exact_revisit_more_than_30_s_later_is_matched_to_the_right_frame(ros: Ros) -> None:

@@ -367,3 +367,22 @@ def test_odometry_that_jumps_back_forgets_the_old_timeline_and_interpolates_the_
         assert odom.offer(t * S, pose, "odom") is None
     assert len(odom) == 2 and odom.newest == 11 * S
     assert odom.pose_at(10 * S + S // 2)[0, 3] == pytest.approx(2.0)
+
+
+def test_an_image_that_arrives_after_its_frame_went_without_it_is_counted_late() -> None:
+    """The mark of a sample lost in transport and repaired seconds later (Fast DDS shared memory)."""
+    from lcpr_ros.sync import LATE_IMAGE
+
+    assert LATE_IMAGE == "image: arrived after its frame"
+    clock = FakeClock()
+    sync = make_sync(2, clock, max_wait=0.2)
+    sync.offer_image(0, 10 * S, "a")
+    sync.offer_image(1, 9 * S, "b-old")
+    sync.offer_cloud(10 * S, POINTS)
+    clock.now = 0.3  # camera 1's image for 10 s never came in time
+    (frame,) = sync.ready()
+    assert frame.cameras == ["a", None]
+    sync.offer_image(1, 10 * S + 10 * MS, "b-late")  # the repair
+    assert sync.late == [0, 1]
+    sync.offer_image(1, 11 * S, "b-next")  # an image for the next frame is not late
+    assert sync.late == [0, 1]

@@ -15,7 +15,6 @@ import random
 import signal
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -26,7 +25,6 @@ import pytest
 import rclpy
 from nav_msgs.msg import Odometry
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -36,7 +34,7 @@ from std_srvs.srv import Trigger
 from lcpr_core.pretrained import default_vseq2pc_weights
 from lcpr_core.vseq2pc.sequence import sequence_table
 from lcpr_ros.errors import ConfigError, MapLoadError
-from lcpr_ros.harness import OutputListener, wait_until
+from lcpr_ros.harness import OutputListener, spinning, wait_until
 from msg_tools.camera_info import model_to_camera_info
 from msg_tools.image import array_to_image
 from msg_tools.pointcloud import array_to_pointcloud2
@@ -142,28 +140,16 @@ def ros(drive: Drive, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Ros]
     map_path = tmp_path_factory.mktemp("map") / "vseq2pc_map.npz"
     node = Vseq2pcNode(context=context, parameter_overrides=params(drive, **{"map.path": str(map_path)}))
     driver = rclpy.create_node("vdriver", context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    executor.add_node(driver)
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
-    pubs = {"odom": driver.create_publisher(Odometry, TOPICS["odom_topic"], QOS),
-            "cloud": driver.create_publisher(PointCloud2, TOPICS["lidar_topic"], QOS),
-            "depth": driver.create_publisher(Image, TOPICS["depth_topic"], QOS),
-            "labels": driver.create_publisher(Image, TOPICS["labels_topic"], QOS),
-            "info": driver.create_publisher(CameraInfo, TOPICS["camera_info_topic"], QOS)}
-    listener = OutputListener(driver, "/vseq2pc")
-    assert wait_until(lambda: all(p.get_subscription_count() >= 1 for p in pubs.values()), 20)
-    listener.wait_for_publishers()
-    try:
+    with spinning(context, node, driver):
+        pubs = {"odom": driver.create_publisher(Odometry, TOPICS["odom_topic"], QOS),
+                "cloud": driver.create_publisher(PointCloud2, TOPICS["lidar_topic"], QOS),
+                "depth": driver.create_publisher(Image, TOPICS["depth_topic"], QOS),
+                "labels": driver.create_publisher(Image, TOPICS["labels_topic"], QOS),
+                "info": driver.create_publisher(CameraInfo, TOPICS["camera_info_topic"], QOS)}
+        listener = OutputListener(driver, "/vseq2pc")
+        assert wait_until(lambda: all(p.get_subscription_count() >= 1 for p in pubs.values()), 20)
+        listener.wait_for_publishers()
         yield Ros(context, node, driver, listener, pubs, map_path, drive.info)
-    finally:
-        node.close()
-        executor.shutdown(timeout_sec=5)
-        thread.join(5)
-        node.destroy_node()
-        driver.destroy_node()
-        rclpy.try_shutdown(context=context)
 
 
 def test_camera_sequences_revisiting_the_map_are_matched_to_the_scans_at_their_poses(ros: Ros, drive: Drive) -> None:
