@@ -36,7 +36,6 @@ import json
 import os
 import random
 import re
-import signal
 import subprocess
 import sys
 import tempfile
@@ -53,7 +52,7 @@ import rclpy  # noqa: E402
 from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 
-from lcpr_ros.harness import FramePublisher, OutputListener, synthetic_place, wait_until  # noqa: E402
+from lcpr_ros.harness import FramePublisher, OutputListener, interrupt, synthetic_place, wait_until  # noqa: E402
 
 FRAME_DT = 0.5  # s of header time between frames (2 Hz)
 T0 = 1_700_000_000.0
@@ -246,12 +245,7 @@ def main() -> int:
             args.json.write_text(json.dumps(results, indent=2))
         return 0 if ok_latency and ok_memory else 2
     finally:
-        if node_proc.poll() is None:
-            node_proc.send_signal(signal.SIGINT)
-            try:
-                node_proc.wait(60)
-            except subprocess.TimeoutExpired:
-                node_proc.kill()
+        interrupt(node_proc)
         executor.shutdown(timeout_sec=5)
         spinner.join(5)
         driver.destroy_node()

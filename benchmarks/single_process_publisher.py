@@ -34,7 +34,6 @@ from __future__ import annotations
 import argparse
 import os
 import random
-import signal
 import subprocess
 import sys
 import tempfile
@@ -49,7 +48,7 @@ import rclpy  # noqa: E402
 from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 
-from lcpr_ros.harness import FramePublisher, OutputListener, synthetic_place, wait_until  # noqa: E402
+from lcpr_ros.harness import FramePublisher, OutputListener, interrupt, synthetic_place, wait_until  # noqa: E402
 
 T0 = 1_700_000_000.0
 
@@ -109,12 +108,7 @@ def main(argv: list[str] | None = None) -> int:
         time.sleep(8.0)  # late repairs, the last frames, two more diagnostics messages
         detector, inputs = listener.latest_values("detector"), listener.latest_values("inputs")
     finally:
-        if node.poll() is None:
-            node.send_signal(signal.SIGINT)
-            try:
-                node.wait(60)
-            except subprocess.TimeoutExpired:
-                node.kill()
+        interrupt(node)
         executor.shutdown(timeout_sec=5)
         driver.destroy_node()
         rclpy.try_shutdown(context=context)

@@ -6,6 +6,8 @@ number): publishing the same place again at a later stamp is an exact revisit.
 """
 from __future__ import annotations
 
+import signal
+import subprocess
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -111,6 +113,17 @@ class FramePublisher:
             if k not in skip_cameras:
                 pub.publish(self.image_msg(place, k, stamp))
         self.lidar.publish(self.cloud_msg(place, stamp))
+
+
+def interrupt(process: subprocess.Popen[Any], timeout: float = 60.0) -> None:
+    """Ctrl-C a node process (it finishes its frame and saves), killing it if it has not stopped within ``timeout``."""
+    if process.poll() is not None:
+        return
+    process.send_signal(signal.SIGINT)
+    try:
+        process.wait(timeout)
+    except subprocess.TimeoutExpired:
+        process.kill()
 
 
 @contextmanager

@@ -19,7 +19,6 @@ from lcpr_ros.harness import SENSOR_PUB_QOS, spinning, synthetic_place, wait_unt
 from lcpr_ros.node import LcprNode
 from msg_tools import array_to_image
 
-DOMAIN = random.randint(101, 200)
 PREFIX = f"/d{random.randint(0, 10**6)}"
 CAMERAS = [f"{PREFIX}/CAM_{k}/image_raw" for k in range(6)]
 LIDAR = f"{PREFIX}/points"
@@ -34,10 +33,11 @@ class Ros:
     lidar: object
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture()
 def ros() -> Iterator[Ros]:
+    """A node of its own for every test (fresh map, counters and topics): each passes alone and in any order."""
     context = Context()
-    rclpy.init(context=context, domain_id=DOMAIN)
+    rclpy.init(context=context, domain_id=random.randint(101, 200))
     values = {"model.image_size": [32, 96], "model.lidar": "velodyne_vlp16", "model.range_size": [8, 256],
               "model.width": 0.25, "camera_topics": CAMERAS, "lidar_topic": LIDAR, "odom_topic": "",
               "sync.camera_timeout": 5.0, "keyframe.min_interval": 0.0, "verify.enabled": False}

@@ -1,4 +1,8 @@
-"""The lcpr node in this process (rclpy executor in a thread), driven over real DDS on loopback."""
+"""The lcpr node in this process (rclpy executor in a thread), driven over real DDS on loopback.
+
+Every test gets a node of its own (fresh map, counters and topics, its own DDS domain) and
+builds the history it needs with :func:`visit_places`: each passes alone and in any order.
+"""
 from __future__ import annotations
 
 import random
@@ -40,21 +44,33 @@ from lcpr_ros.harness import (
 )
 from lcpr_ros.node import CANDIDATE_QOS, LcprNode
 
-DOMAIN = random.randint(1, 100)
-PREFIX = f"/t{random.randint(0, 10**6)}"
-CAMERAS = [f"{PREFIX}/CAM_{k}/image/compressed" for k in range(6)]
-LIDAR = f"{PREFIX}/LIDAR_TOP/points"
-ODOM = f"{PREFIX}/odom"
 T0 = 1_700_000_000.0  # epoch-like header stamps
 WAIT = 60.0  # s: generous bound for one frame on a loaded 2-core machine
 
 
-def small_model(**extra: object) -> list[Parameter]:
+@dataclass(frozen=True)
+class Topics:
+    prefix: str
+
+    @property
+    def cameras(self) -> list[str]:
+        return [f"{self.prefix}/CAM_{k}/image/compressed" for k in range(6)]
+
+    @property
+    def lidar(self) -> str:
+        return f"{self.prefix}/LIDAR_TOP/points"
+
+    @property
+    def odom(self) -> str:
+        return f"{self.prefix}/odom"
+
+
+def small_model(topics: Topics, **extra: object) -> list[Parameter]:
     """A tiny model (32 x 96 images, 8 x 256 range image, quarter width): well under a second per frame."""
     values: dict[str, object] = {
         "model.image_size": [32, 96], "model.lidar": "velodyne_vlp16", "model.range_size": [8, 256],
         "model.width": 0.25,
-        "camera_topics": CAMERAS, "lidar_topic": LIDAR, "odom_topic": ODOM,
+        "camera_topics": topics.cameras, "lidar_topic": topics.lidar, "odom_topic": topics.odom,
         "diagnostics.period": 0.2, "sync.camera_timeout": 5.0, **extra,
     }
     return [Parameter(name, value=value) for name, value in values.items()]
@@ -62,6 +78,7 @@ def small_model(**extra: object) -> list[Parameter]:
 
 @dataclass
 class Ros:
+    topics: Topics
     context: Context
     node: LcprNode
     driver: Node
@@ -83,28 +100,34 @@ class Ros:
         assert wait_until(lambda: self.processed() > before), f"frame {stamp} was not processed"
 
 
-@pytest.fixture(scope="module")
-def ros(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Ros]:
+@pytest.fixture()
+def ros(tmp_path: Path) -> Iterator[Ros]:
+    topics = Topics(f"/t{random.randint(0, 10**6)}")
     context = Context()
-    rclpy.init(context=context, domain_id=DOMAIN)
-    map_path = tmp_path_factory.mktemp("map") / "lcpr_map.npz"
-    node = LcprNode(context=context, parameter_overrides=small_model(**{"map.path": str(map_path)}))
+    rclpy.init(context=context, domain_id=random.randint(1, 100))
+    map_path = tmp_path / "lcpr_map.npz"
+    node = LcprNode(context=context, parameter_overrides=small_model(topics, **{"map.path": str(map_path)}))
     driver = rclpy.create_node("driver", context=context)
     with spinning(context, node, driver) as executor:
         markers: list[MarkerArray] = []
         driver.create_subscription(MarkerArray, "/lcpr/markers", markers.append, CANDIDATE_QOS)
-        pub = FramePublisher(driver, CAMERAS, LIDAR, odom_topic=ODOM)
+        pub = FramePublisher(driver, topics.cameras, topics.lidar, odom_topic=topics.odom)
         listener = OutputListener(driver)
         pub.wait_for_subscribers()
         listener.wait_for_publishers()
-        yield Ros(context, node, driver, pub, listener, markers, map_path, [synthetic_place(i) for i in range(3)], {},
-                  executor)
+        yield Ros(topics, context, node, driver, pub, listener, markers, map_path,
+                  [synthetic_place(i) for i in range(3)], {}, executor)
 
 
-def test_an_exact_revisit_more_than_30_s_later_is_matched_to_the_right_frame(ros: Ros) -> None:
+def visit_places(ros: Ros) -> None:
+    """First visits of places 0, 1, 2 at T0, T0 + 1 and T0 + 2 (x = 0, 10, 20 m); ``ros.ids`` their keyframes."""
     for i, place in enumerate(ros.places):
         ros.feed(place, T0 + i, x=10.0 * i)
         ros.ids[i] = len(ros.node.detector.map) - 1
+
+
+def test_an_exact_revisit_more_than_30_s_later_is_matched_to_the_right_frame(ros: Ros) -> None:
+    visit_places(ros)
     assert ros.listener.out.loops == []  # everything is within 30 s: excluded
     ros.feed(ros.places[1], T0 + 40.0, x=10.5)
     assert ros.listener.wait(lambda o: o.loops and o.candidates, 10)
@@ -119,6 +142,8 @@ def test_an_exact_revisit_more_than_30_s_later_is_matched_to_the_right_frame(ros
 
 
 def test_markers_join_the_query_and_the_matched_position_coloured_by_distance(ros: Ros) -> None:
+    visit_places(ros)
+    ros.feed(ros.places[1], T0 + 40.0, x=10.5)
     assert wait_until(lambda: bool(ros.markers), 10), ros.node.detector.map.poses
     (marker,) = ros.markers[-1].markers
     assert marker.type == Marker.LINE_LIST and marker.header.frame_id == "map"
@@ -129,6 +154,7 @@ def test_markers_join_the_query_and_the_matched_position_coloured_by_distance(ro
 
 
 def test_bad_input_is_dropped_counted_and_warned_once_per_cause_and_the_map_is_kept(ros: Ros) -> None:
+    visit_places(ros)
     node, pub, place = ros.node, ros.pub, ros.places[2]
     size_before = len(node.detector.map)
     logged_before = node.warnings.logged
@@ -188,16 +214,17 @@ def test_bad_input_is_dropped_counted_and_warned_once_per_cause_and_the_map_is_k
 
 
 def test_a_camera_that_stops_degrades_frames_instead_of_stopping_them(ros: Ros) -> None:
+    visit_places(ros)
     t = T0 + 70.0
     ros.feed(ros.places[0], t, x=0.0)
     ros.feed(ros.places[0], t + 3.0, x=0.0, skip=(3,))  # camera 3 late: the frame waits max_wait, then goes
     ros.feed(ros.places[0], t + 6.0, x=0.0, skip=(3,))  # silent > sync.camera_timeout: stopped
     assert ros.node.sync.stopped_cameras() == (3,)
-    assert f"camera stopped: {CAMERAS[3]}" in ros.node.warnings.causes
+    assert f"camera stopped: {ros.topics.cameras[3]}" in ros.node.warnings.causes
     assert ros.listener.wait(
         lambda o: o.candidates and o.candidates[-1][0]["query_stamp"] == pytest.approx(t + 6.0), 10)
     assert ros.listener.out.candidates[-1][0]["degraded"] == 1
-    assert wait_until(lambda: ros.listener.latest_values("inputs").get("stopped cameras") == CAMERAS[3], 5)
+    assert wait_until(lambda: ros.listener.latest_values("inputs").get("stopped cameras") == ros.topics.cameras[3], 5)
 
 
 def call(node: Node, client: object, request: object, timeout: float = 20.0) -> object:
@@ -208,6 +235,7 @@ def call(node: Node, client: object, request: object, timeout: float = 20.0) -> 
 
 
 def test_the_save_map_service_saves_every_keyframe_and_answers_with_count_and_path(ros: Ros) -> None:
+    visit_places(ros)
     client = ros.driver.create_client(Trigger, "/lcpr/save_map")
     response = call(ros.driver, client, Trigger.Request())
     count = len(ros.node.detector.map)
@@ -217,6 +245,7 @@ def test_the_save_map_service_saves_every_keyframe_and_answers_with_count_and_pa
 
 
 def test_parameters_set_at_run_time_are_validated_over_the_parameter_service(ros: Ros) -> None:
+    visit_places(ros)
     client = ros.driver.create_client(SetParameters, "/lcpr/set_parameters")
 
     def set_one(name: str, value: ParameterValue) -> object:
@@ -237,23 +266,25 @@ def test_parameters_set_at_run_time_are_validated_over_the_parameter_service(ros
     ros.feed(ros.places[2], T0 + 90.0, x=20.0)
     assert ros.listener.wait(lambda o: o.candidates[-1][0]["query_stamp"] == pytest.approx(T0 + 90.0), 10)
     (best,) = ros.listener.out.candidates[-1]  # top_k = 1 applied to the next frame
-    assert best["distance"] == pytest.approx(0.0, abs=1e-4)  # place 2 was seen at T0 + 2 and T0 + 53
-    assert best["match_stamp"] in (pytest.approx(T0 + 2.0), pytest.approx(T0 + 53.0))
+    assert best["distance"] == pytest.approx(0.0, abs=1e-4)  # place 2 was seen at T0 + 2
+    assert best["match_stamp"] == pytest.approx(T0 + 2.0)
 
 
 def test_a_second_session_loads_the_saved_map_keeps_its_ids_and_adds_new_places(ros: Ros) -> None:
+    visit_places(ros)
+    ros.feed(ros.places[1], T0 + 40.0, x=10.5)
     ros.node.save_map()
     saved = DescriptorMap.load(ros.map_path)
-    lidar = f"{PREFIX}/second/points"
+    lidar = f"{ros.topics.prefix}/second/points"
     second = LcprNode(context=ros.context, namespace="/second",
-                      parameter_overrides=small_model(**{"map.path": str(ros.map_path), "session": "second",
-                                                         "lidar_topic": lidar}))
+                      parameter_overrides=small_model(ros.topics, **{"map.path": str(ros.map_path),
+                                                                     "session": "second", "lidar_topic": lidar}))
     ros.executor.add_node(second)
     try:
         assert len(second.detector.map) == len(saved)
         assert second.detector.map.ids.tolist() == saved.ids.tolist()
         assert second.detector.map.sources == saved.sources
-        pub = FramePublisher(ros.driver, CAMERAS, lidar, odom_topic=ODOM)
+        pub = FramePublisher(ros.driver, ros.topics.cameras, lidar, odom_topic=ros.topics.odom)
         listener = OutputListener(ros.driver, "/second/lcpr")
         pub.wait_for_subscribers()
         listener.wait_for_publishers()
@@ -271,26 +302,27 @@ def test_a_second_session_loads_the_saved_map_keeps_its_ids_and_adds_new_places(
 
 
 def test_invalid_parameters_or_an_unusable_map_file_refuse_to_build_the_node(ros: Ros, tmp_path: Path) -> None:
+    visit_places(ros)
+    ros.node.save_map()
     with pytest.raises(ConfigError, match="match.top_k"):
-        LcprNode(context=ros.context, namespace="/bad1", parameter_overrides=small_model(**{"match.top_k": 0}))
+        LcprNode(context=ros.context, namespace="/bad1", parameter_overrides=small_model(ros.topics, **{"match.top_k": 0}))
     with pytest.raises(ConfigError, match="image_size"):
         LcprNode(context=ros.context, namespace="/bad2",
-                 parameter_overrides=small_model(**{"model.image_size": [30, 90]}))
+                 parameter_overrides=small_model(ros.topics, **{"model.image_size": [30, 90]}))
     corrupt = tmp_path / "corrupt.npz"
     corrupt.write_bytes(b"PK\x03\x04 definitely not a map")
     with pytest.raises(MapLoadError, match="refusing to start"):
-        LcprNode(context=ros.context, namespace="/bad3", parameter_overrides=small_model(**{"map.path": str(corrupt)}))
+        LcprNode(context=ros.context, namespace="/bad3", parameter_overrides=small_model(ros.topics, **{"map.path": str(corrupt)}))
     assert corrupt.read_bytes() == b"PK\x03\x04 definitely not a map"
     other = tmp_path / "other.npz"
     DescriptorMap.load(ros.map_path).save(other)
     with pytest.raises(MapLoadError, match="512-d"):
         LcprNode(context=ros.context, namespace="/bad4",
-                 parameter_overrides=small_model(**{"map.path": str(other), "map.dim": 512}))
+                 parameter_overrides=small_model(ros.topics, **{"map.path": str(other), "map.dim": 512}))
     assert np.array_equal(DescriptorMap.load(other).ids, DescriptorMap.load(ros.map_path).ids)
 
 
 def test_a_verified_loop_carries_its_relative_pose_and_covariance_on_candidates(ros: Ros) -> None:
-    """Runs last: its stamps are later than every other test's."""
     ros.feed(ros.places[2], T0 + 10_000.0, x=500.0)
     ros.feed(ros.places[2], T0 + 10_040.0, x=500.2)
     assert ros.listener.wait(lambda o: o.loops and o.loops[-1][0] == pytest.approx(T0 + 10_040.0), 10)

@@ -133,10 +133,11 @@ def labels_msg(labels: np.ndarray, stamp: float) -> Image:
     return array_to_image(labels, encoding="mono16", frame_id="camera_left", stamp=stamp, msg_type=Image)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture()
 def ros(drive: Drive, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Ros]:
+    """A node of its own for every test (fresh map and counters): each passes alone and in any order."""
     context = Context()
-    rclpy.init(context=context, domain_id=DOMAIN)
+    rclpy.init(context=context, domain_id=random.randint(1, 200))
     map_path = tmp_path_factory.mktemp("map") / "vseq2pc_map.npz"
     node = Vseq2pcNode(context=context, parameter_overrides=params(drive, **{"map.path": str(map_path)}))
     driver = rclpy.create_node("vdriver", context=context)
