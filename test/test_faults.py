@@ -154,3 +154,20 @@ def test_the_save_map_service_answers_a_full_disk_with_the_cause_and_the_old_map
                                    what="places", path=str(path), log=logged.append)
     assert response.success is False and "No space left on device" in response.message and str(path) in response.message
     assert path.read_bytes() == before and logged == []
+
+
+def test_a_truncated_weights_file_is_refused_with_its_path(tmp_path: Path) -> None:
+    """The bundled checkpoint cut short, as an interrupted copy leaves it."""
+    from lcpr_core.checkpoint import load_weights
+    from lcpr_core.errors import CheckpointError
+    from lcpr_core.models import LCPR
+
+    from lcpr_core.describer import checkpoint_config
+
+    bundled = Path(__file__).resolve().parents[1] / "weights" / "lcpr_synth_narrow.pth"
+    model = LCPR(width=checkpoint_config(bundled)["width"])
+    load_weights(model, bundled)  # whole, it loads
+    cut = tmp_path / "cut.pth"
+    cut.write_bytes(bundled.read_bytes()[: bundled.stat().st_size // 2])
+    with pytest.raises(CheckpointError, match=r"cut\.pth' is not a readable PyTorch file"):
+        load_weights(model, cut)
