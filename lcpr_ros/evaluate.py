@@ -395,10 +395,50 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="seed of the pose-graph proof's odometry drift (default 0)")
     g.add_argument("--lidar-height", type=float, default=2.0, help="m added to z by Scan Context (default 2.0)")
     g.add_argument("--quiet", action="store_true", help="no progress bar")
+    g = p.add_argument_group("one configuration with the node")
+    g.add_argument("--params-file", type=Path, default=None,
+                   help="a node parameter file (e.g. config/lcpr.yaml): model, keyframing, matching, verification, "
+                        "sync slop and topics as lcpr_node would run them; --weights, --imagenet, --seed, "
+                        "--threads and --odom-topic still apply, the flags of those settings may not be given")
     return p.parse_args(argv)
 
 
+#: Flags whose settings a --params-file gives (dest, default): giving both would leave it unclear which ran.
+_FILE_SETTINGS = (("image_size", None), ("lidar", None), ("camera_topics", None), ("lidar_topic", None),
+                  ("slop", 0.05), ("max_distance", 1.0), ("exclude_recent", 30.0), ("keyframe_interval", 0.5),
+                  ("keyframe_distance", 0.0), ("precision", "fp32"))
+
+
+def options_from_params_file(args: argparse.Namespace) -> EvalOptions:
+    """What lcpr_node would run with ``args.params_file``, plus the evaluation's own options."""
+    from .params import settings_from_file  # no rclpy
+
+    clash = [f"--{dest.replace('_', '-')}" for dest, default in _FILE_SETTINGS if getattr(args, dest) != default]
+    if clash:
+        raise ValueError(f"{', '.join(clash)} and --params-file {args.params_file} both set what the node runs; "
+                         "give the value in the parameter file")
+    settings = settings_from_file(args.params_file)
+    det, node = settings.detector, settings.node
+    base = TOPIC_PRESETS[args.topics]
+    topics = dataclasses.replace(base, cameras=tuple(node.camera_topics), camera_info=(), depth=(), labels=(),
+                                 lidar=node.lidar_topic, odom=args.odom_topic or node.odom_topic or base.odom)
+    overrides = {k: getattr(args, k) for k in ("weights", "imagenet", "threads") if getattr(args, k)}
+    if args.seed:
+        overrides["seed"] = args.seed
+    return EvalOptions(
+        topics=topics, model=dataclasses.replace(det.model, **overrides), keyframe=det.keyframe,
+        exclude_recent_s=det.match.exclude_recent_s, radius=args.radius, max_distance=det.match.max_distance,
+        scan_context=None if args.no_scan_context else ScanContextConfig(lidar_height=args.lidar_height),
+        sc_max_distance=args.sc_max_distance, slop=node.sync.slop, limit=args.limit, warmup=args.warmup,
+        split_offset=args.split_offset,
+        verify=dataclasses.replace(det.verify, enabled=det.verify.enabled and not args.no_verify),
+        base_frame=args.base_frame, drift_seed=args.drift_seed,
+    )
+
+
 def options_from_args(args: argparse.Namespace) -> EvalOptions:
+    if args.params_file is not None:
+        return options_from_params_file(args)
     base = TOPIC_PRESETS[args.topics]
     topics = dataclasses.replace(
         base,

@@ -11,9 +11,11 @@ the reason, at start and when a parameter is set at run time.
 from __future__ import annotations
 
 import dataclasses
+import os
 import typing
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from lcpr_core.detector import DetectorConfig
@@ -143,6 +145,42 @@ def settings_from(values: Mapping[str, Any]) -> Settings:
     except ValueError as err:
         raise ConfigError(str(err)) from err
     return Settings(detector, node)
+
+
+def settings_from_file(path: str | os.PathLike[str]) -> Settings:
+    """The settings a ``--params-file`` (e.g. config/lcpr.yaml) gives the node, leaves absent from it at their
+    defaults; ConfigError names the file and what is wrong with it."""
+    import yaml  # local: only the offline tools read parameter files themselves
+
+    where = os.fspath(path)
+    try:
+        data = yaml.safe_load(Path(where).read_text())
+    except (OSError, yaml.YAMLError) as err:
+        raise ConfigError(f"parameter file {where}: {err}") from err
+    sections = [v for v in data.values() if isinstance(v, dict) and "ros__parameters" in v] \
+        if isinstance(data, dict) else []
+    if len(sections) != 1:
+        raise ConfigError(f"parameter file {where} holds {len(sections)} node sections with ros__parameters; "
+                          "expected one (as config/lcpr.yaml: '/**: ros__parameters: ...')")
+    values: dict[str, Any] = {leaf.name: leaf.default for leaf in all_leaves()}
+    known = set(values)
+    given = _flatten(sections[0]["ros__parameters"])
+    unknown = sorted(set(given) - known)
+    if unknown:
+        raise ConfigError(f"parameter file {where} names unknown parameters {unknown}")
+    values.update({name: tuple(v) if isinstance(v, list) else v for name, v in given.items()})
+    return settings_from(values)
+
+
+def _flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in tree.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            out.update(_flatten(value, name + "."))
+        else:
+            out[name] = value
+    return out
 
 
 def describe(leaves_: Iterable[Leaf]) -> str:

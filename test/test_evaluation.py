@@ -410,3 +410,42 @@ def test_lcpr_eval_reports_the_verified_loops_beside_retrieval(loop_bag: Path) -
     plain = evaluate_bag(loop_bag, options, progress=False)
     assert plain.verified is None and plain.to_dict()["verified"] is None
     assert "LCPR + verification" not in summary_table(plain)
+
+
+def test_lcpr_eval_with_the_node_s_params_file_evaluates_what_the_node_would_run(tmp_path) -> None:
+    """One configuration source: the parameter file sets model, keyframing, matching, verification and topics."""
+    import yaml
+
+    from lcpr_ros.evaluate import options_from_args, parse_args
+    from lcpr_ros.params import settings_from_file
+
+    repo = Path(__file__).resolve().parents[1]
+    data = yaml.safe_load((repo / "config" / "lcpr.yaml").read_text())
+    params = data["/**"]["ros__parameters"]
+    params["match"]["exclude_recent_s"] = 12.5
+    params["keyframe"]["min_interval"] = 2.0
+    params["verify"]["min_fitness"] = 0.6
+    params["model"]["image_size"] = [64, 192]
+    params["lidar_topic"] = "/my/points"
+    params["sync"]["slop"] = 0.02
+    path = tmp_path / "vehicle.yaml"
+    path.write_text(yaml.safe_dump(data))
+    node = settings_from_file(path)
+    options = options_from_args(parse_args([str(tmp_path / "bag"), "--params-file", str(path), "--weights", "w.pth"]))
+    assert options.exclude_recent_s == 12.5 == node.detector.match.exclude_recent_s
+    assert options.keyframe == node.detector.keyframe and options.keyframe.min_interval == 2.0
+    assert options.verify == node.detector.verify and options.verify.min_fitness == 0.6
+    assert options.model.image_size == (64, 192) and options.model.weights == "w.pth"
+    assert options.topics.lidar == "/my/points" and options.topics.cameras == node.node.camera_topics
+    assert options.slop == 0.02 and options.max_distance == node.detector.match.max_distance
+
+
+def test_lcpr_eval_refuses_a_params_file_with_flags_that_set_the_same_things(tmp_path) -> None:
+    from lcpr_ros.evaluate import main
+
+    repo = Path(__file__).resolve().parents[1]
+    assert main([str(tmp_path / "bag"), "--params-file", str(repo / "config" / "lcpr.yaml"),
+                 "--exclude-recent", "10"]) == 2
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("/**:\n  ros__parameters:\n    match:\n      top_kk: 3\n")
+    assert main([str(tmp_path / "bag"), "--params-file", str(bad)]) == 2
