@@ -87,7 +87,8 @@ def main(argv: list[str] | None = None) -> int:
     driver = rclpy.create_node("one_process_driver", context=context)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(driver)
-    threading.Thread(target=executor.spin, daemon=True).start()
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
     try:
         if not wait_until(lambda: "[lcpr]: ready" in log.read_text(errors="replace") or node.poll() is not None, 120):
             print(log.read_text(errors="replace"), file=sys.stderr)
@@ -110,6 +111,7 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         interrupt(node)
         executor.shutdown(timeout_sec=5)
+        spinner.join(5)
         driver.destroy_node()
         rclpy.try_shutdown(context=context)
     decided = sum(int(v) for k, v in detector.items() if k.startswith("frames "))
