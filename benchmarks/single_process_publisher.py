@@ -37,18 +37,21 @@ import random
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-import rclpy  # noqa: E402
-from rclpy.context import Context  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 
-from lcpr_ros.harness import FramePublisher, OutputListener, interrupt, synthetic_place, wait_until  # noqa: E402
+from lcpr_ros.harness import (  # noqa: E402
+    FramePublisher,
+    OutputListener,
+    driver_node,
+    interrupt,
+    synthetic_place,
+    wait_until,
+)
 
 T0 = 1_700_000_000.0
 
@@ -82,38 +85,29 @@ def main(argv: list[str] | None = None) -> int:
     log = workdir / "node.log"
     extra = [a for pair in (("-p", x) for x in args.node_arg) for a in pair]
     node = start_node(prefix, domain, log, extra, dict(e.split("=", 1) for e in args.node_env))
-    context = Context()
-    rclpy.init(context=context, domain_id=domain)
-    driver = rclpy.create_node("one_process_driver", context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(driver)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
-    try:
-        if not wait_until(lambda: "[lcpr]: ready" in log.read_text(errors="replace") or node.poll() is not None, 120):
-            print(log.read_text(errors="replace"), file=sys.stderr)
-            return 1
-        pub = FramePublisher(driver, [f"{prefix}/CAM_{k}/image_raw" for k in range(6)], f"{prefix}/points",
-                             compressed=False)
-        listener = OutputListener(driver)
-        pub.wait_for_subscribers(30)
-        listener.wait_for_publishers(30)
-        half = max(args.frames // 2, 1)
-        places = [synthetic_place(i, size=tuple(args.image), points=args.points) for i in range(half)]
-        start = time.monotonic()
-        for i in range(args.frames):
-            delay = start + 0.5 * i - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            pub.publish(places[i % half], T0 + 0.5 * i + (40.0 if i >= half else 0.0))
-        time.sleep(8.0)  # late repairs, the last frames, two more diagnostics messages
-        detector, inputs = listener.latest_values("detector"), listener.latest_values("inputs")
-    finally:
-        interrupt(node)
-        executor.shutdown(timeout_sec=5)
-        spinner.join(5)
-        driver.destroy_node()
-        rclpy.try_shutdown(context=context)
+    with driver_node("one_process_driver", domain) as driver:
+        try:
+            if not wait_until(lambda: "[lcpr]: ready" in log.read_text(errors="replace") or node.poll() is not None,
+                              120):
+                print(log.read_text(errors="replace"), file=sys.stderr)
+                return 1
+            pub = FramePublisher(driver, [f"{prefix}/CAM_{k}/image_raw" for k in range(6)], f"{prefix}/points",
+                                 compressed=False)
+            listener = OutputListener(driver)
+            pub.wait_for_subscribers(30)
+            listener.wait_for_publishers(30)
+            half = max(args.frames // 2, 1)
+            places = [synthetic_place(i, size=tuple(args.image), points=args.points) for i in range(half)]
+            start = time.monotonic()
+            for i in range(args.frames):
+                delay = start + 0.5 * i - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+                pub.publish(places[i % half], T0 + 0.5 * i + (40.0 if i >= half else 0.0))
+            time.sleep(8.0)  # late repairs, the last frames, two more diagnostics messages
+            detector, inputs = listener.latest_values("detector"), listener.latest_values("inputs")
+        finally:
+            interrupt(node)
     decided = sum(int(v) for k, v in detector.items() if k.startswith("frames "))
     missing = {k.removeprefix("frames without "): int(v) for k, v in inputs.items()
                if k.startswith("frames without ") and int(v)}

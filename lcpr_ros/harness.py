@@ -127,20 +127,46 @@ def interrupt(process: subprocess.Popen[Any], timeout: float = 60.0) -> None:
 
 
 @contextmanager
-def spinning(context: Context, node: Any, driver: Node) -> Iterator[SingleThreadedExecutor]:
-    """Spin a node under test (one with ``close()``) and a driver node in a background thread; on leaving,
-    close the node (its worker finishes), stop the executor and shut ``context`` down."""
+def _spun(context: Context, *nodes: Node) -> Iterator[SingleThreadedExecutor]:
+    """``nodes`` spun by one executor in a background thread until the block ends."""
     executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    executor.add_node(driver)
+    for node in nodes:
+        executor.add_node(node)
     thread = threading.Thread(target=executor.spin, daemon=True)
     thread.start()
     try:
         yield executor
     finally:
-        node.close()
         executor.shutdown(timeout_sec=5)
         thread.join(5)
+
+
+@contextmanager
+def driver_node(name: str, domain: int) -> Iterator[Node]:
+    """A node of its own context on ``domain``, spun in a background thread (a test's or benchmark's driver);
+    on leaving, the executor stops and the context shuts down."""
+    context = Context()
+    rclpy.init(context=context, domain_id=domain)
+    node = rclpy.create_node(name, context=context)
+    try:
+        with _spun(context, node):
+            yield node
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
+@contextmanager
+def spinning(context: Context, node: Any, driver: Node) -> Iterator[SingleThreadedExecutor]:
+    """Spin a node under test (one with ``close()``) and a driver node in a background thread; on leaving,
+    close the node (its worker finishes), stop the executor and shut ``context`` down."""
+    try:
+        with _spun(context, node, driver) as executor:
+            try:
+                yield executor
+            finally:
+                node.close()
+    finally:
         node.destroy_node()
         driver.destroy_node()
         rclpy.try_shutdown(context=context)

@@ -7,16 +7,12 @@ import re
 import signal
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-import rclpy
-from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from lcpr_core.descriptor_map import DescriptorMap
@@ -24,6 +20,7 @@ from lcpr_ros import inputs
 from lcpr_ros.harness import (
     FramePublisher,
     OutputListener,
+    driver_node,
     cloud_with_nan,
     cloud_without_xyz,
     image_of_wrong_size,
@@ -124,20 +121,8 @@ class Driver:
 
 @pytest.fixture(scope="module")
 def driver() -> Iterator[Driver]:
-    context = Context()
-    rclpy.init(context=context, domain_id=DOMAIN)
-    node = rclpy.create_node("process_driver", context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
-    try:
+    with driver_node("process_driver", DOMAIN) as node:
         yield Driver(node, FramePublisher(node, CAMERAS, LIDAR, compressed=False), OutputListener(node))
-    finally:
-        executor.shutdown(timeout_sec=5)
-        thread.join(5)
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)
 
 
 @pytest.fixture(scope="module")

@@ -5,7 +5,6 @@ import os
 import random
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from functools import partial
@@ -15,12 +14,11 @@ import numpy as np
 import pytest
 import rclpy
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CompressedImage, PointCloud2
 
-from lcpr_ros.harness import synthetic_place
+from lcpr_ros.harness import driver_node, synthetic_place
 from lcpr_ros.replay import message_class, replay, shared_memory_profile
 from msg_tools.bags import BagWriter
 from msg_tools.compressed import compressed_from_bytes
@@ -71,20 +69,8 @@ def rig_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def ros() -> Iterator[tuple[Context, Node]]:
-    context = Context()
-    rclpy.init(context=context, domain_id=DOMAIN)
-    node = rclpy.create_node("replay_test", context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
-    try:
-        yield context, node
-    finally:
-        executor.shutdown(timeout_sec=5)
-        thread.join(5)
-        node.destroy_node()
-        rclpy.try_shutdown(context=context)
+    with driver_node("replay_test", DOMAIN) as node:
+        yield node.context, node
 
 
 class Received:
