@@ -63,9 +63,7 @@ class ModelConfig:
     @property
     def range_preset(self) -> LidarPreset:
         if self.lidar == CUSTOM:
-            g = self.lidar_geometry
-            return LidarPreset(g.yaw_offset_deg, g.min_xy, g.fov_up_deg, g.fov_down_deg, int(self.range_size[0]),
-                               int(self.range_size[1]), g.max_range)
+            return self.lidar_geometry.preset(*self.range_size)
         preset = lidar_preset(self.lidar)
         if tuple(self.range_size) == (0, 0):
             return preset

@@ -122,11 +122,12 @@ class _RunRecord:
     reasons: Counter = field(default_factory=Counter)
     degraded: int = 0
 
+    frames: int = 0
+
     @property
     def positions(self) -> np.ndarray:
         """(N, 3) keyframe positions, NaN where unknown."""
         return np.asarray(self.poses, np.float64).reshape(-1, 4, 4)[:, :3, 3]
-    frames: int = 0
 
 
 def to_detector_frame(frame: SensorFrame) -> Frame:
@@ -427,13 +428,19 @@ def options_from_params_file(args: argparse.Namespace) -> EvalOptions:
         overrides["seed"] = args.seed
     return EvalOptions(
         topics=topics, model=dataclasses.replace(det.model, **overrides), keyframe=det.keyframe,
-        exclude_recent_s=det.match.exclude_recent_s, radius=args.radius, max_distance=det.match.max_distance,
-        scan_context=None if args.no_scan_context else ScanContextConfig(lidar_height=args.lidar_height),
-        sc_max_distance=args.sc_max_distance, slop=node.sync.slop, limit=args.limit, warmup=args.warmup,
-        split_offset=args.split_offset,
+        exclude_recent_s=det.match.exclude_recent_s, max_distance=det.match.max_distance, slop=node.sync.slop,
         verify=dataclasses.replace(det.verify, enabled=det.verify.enabled and not args.no_verify),
-        base_frame=args.base_frame, drift_seed=args.drift_seed,
+        **_evaluation_options(args),
     )
+
+
+def _evaluation_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The options that belong to the evaluation, not to what the node runs (the same with or without a
+    parameter file)."""
+    return dict(radius=args.radius,
+                scan_context=None if args.no_scan_context else ScanContextConfig(lidar_height=args.lidar_height),
+                sc_max_distance=args.sc_max_distance, limit=args.limit, warmup=args.warmup,
+                split_offset=args.split_offset, base_frame=args.base_frame, drift_seed=args.drift_seed)
 
 
 def options_from_args(args: argparse.Namespace) -> EvalOptions:
@@ -457,11 +464,8 @@ def options_from_args(args: argparse.Namespace) -> EvalOptions:
     return EvalOptions(
         topics=topics, model=model,
         keyframe=KeyframeConfig(min_interval=args.keyframe_interval, min_distance=args.keyframe_distance),
-        exclude_recent_s=args.exclude_recent, radius=args.radius, max_distance=args.max_distance,
-        scan_context=None if args.no_scan_context else ScanContextConfig(lidar_height=args.lidar_height),
-        sc_max_distance=args.sc_max_distance, slop=args.slop, limit=args.limit, warmup=args.warmup,
-        split_offset=args.split_offset, verify=VerifierConfig(enabled=not args.no_verify),
-        base_frame=args.base_frame, drift_seed=args.drift_seed,
+        exclude_recent_s=args.exclude_recent, max_distance=args.max_distance, slop=args.slop,
+        verify=VerifierConfig(enabled=not args.no_verify), **_evaluation_options(args),
     )
 
 

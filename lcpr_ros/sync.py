@@ -174,11 +174,11 @@ class Synchroniser:
                 self.drops[NO_CAMERA] += 1
                 self._carry_session |= cloud.new_session
                 continue
-            for k, payload in enumerate(cameras):
-                if payload is None:
-                    self.missing[k] += 1
-            if any(payload is None for payload in cameras):
-                self._released_without.append((cloud.stamp_ns, frozenset(k for k, c in enumerate(cameras) if c is None)))
+            missing = frozenset(k for k, payload in enumerate(cameras) if payload is None)
+            for k in missing:
+                self.missing[k] += 1
+            if missing:
+                self._released_without.append((cloud.stamp_ns, missing))
             stopped = tuple(k for k, (_, _, is_stopped) in enumerate(picks) if is_stopped)
             self.released += 1
             new_session = cloud.new_session or self._carry_session

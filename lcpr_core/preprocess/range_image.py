@@ -45,8 +45,12 @@ class LidarGeometry:
         values = dataclasses.astuple(self)
         if not all(np.isfinite(values)):
             raise ValueError(f"lidar_geometry {self}: every value must be finite")
-        _check_config(LidarPreset(self.yaw_offset_deg, self.min_xy, self.fov_up_deg, self.fov_down_deg, 1, 1,
-                                  self.max_range), prefix="lidar_geometry.")
+        _check_config(self.preset(1, 1), prefix="lidar_geometry.")
+
+    def preset(self, height: int, width: int) -> LidarPreset:
+        """This geometry at a range image of ``height`` x ``width``."""
+        return LidarPreset(self.yaw_offset_deg, self.min_xy, self.fov_up_deg, self.fov_down_deg, int(height),
+                           int(width), self.max_range)
 
 
 PRESETS: dict[str, LidarPreset] = {
