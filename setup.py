@@ -40,7 +40,7 @@ setup(
         "posegraph": ["gtsam>=4.2"],
         # The registration comparison in benchmarks/registration_compare.py.
         "compare": ["kiss-icp>=1.0"],
-        "test": ["pytest>=7", "hypothesis>=6"],
+        "test": ["pytest>=7", "hypothesis>=6", "pytest-randomly>=3.15", "pytest-reverse>=1.7"],
     },
     zip_safe=True,
     tests_require=["pytest"],

@@ -31,8 +31,14 @@ class PoseSource(Protocol):
     def configure(self, *, slop: float, max_gap: float) -> None:
         """Change the matching tolerances."""
 
-    def restart(self, after_ns: int) -> None:
-        """Time went back: forget poses stamped after ``after_ns`` (another timeline's)."""
+    def follow_jump(self, stamp_ns: int, seen: int) -> int:
+        """Another stream's header time jumped back to ``stamp_ns``; returns the timeline now current.
+
+        ``seen`` is the timeline that stream followed until now. When odometry is still on it, poses
+        stamped after ``stamp_ns`` belong to the old timeline and are forgotten; when odometry
+        already jumped (or another stream already made it follow), nothing is forgotten, so poses
+        of the new timeline that arrived ahead of the stream stay.
+        """
 
 
 class NoPoses:
@@ -55,8 +61,8 @@ class NoPoses:
     def configure(self, *, slop: float, max_gap: float) -> None:
         return None
 
-    def restart(self, after_ns: int) -> None:
-        return None
+    def follow_jump(self, stamp_ns: int, seen: int) -> int:
+        return seen
 
 
 class OdometryBuffer:
@@ -73,6 +79,7 @@ class OdometryBuffer:
         self._poses: list[np.ndarray] = []
         self._capacity = capacity
         self._order = StampOrder(round(jump_back * NS_PER_S))  # see StampOrder: a new timeline
+        self.timeline = 0  # counts jumps back in header time (see follow_jump)
         self.configure(slop=slop, max_gap=max_gap)
 
     def configure(self, *, slop: float, max_gap: float) -> None:
@@ -96,8 +103,8 @@ class OdometryBuffer:
         if refused is not None:
             return refused
         if self._order.jumped_from is not None:
-            self.restart(stamp_ns - 1)
-            self._order.last = stamp_ns
+            self._forget_after(stamp_ns - 1)
+            self.timeline += 1
         self.frame_id = frame_id
         self._last_arrival = self._clock()
         self._stamps.append(stamp_ns)
@@ -107,7 +114,13 @@ class OdometryBuffer:
             del self._poses[: self._capacity]
         return None
 
-    def restart(self, after_ns: int) -> None:
+    def follow_jump(self, stamp_ns: int, seen: int) -> int:
+        if self.timeline == seen:
+            self._forget_after(stamp_ns)
+            self.timeline += 1
+        return self.timeline
+
+    def _forget_after(self, after_ns: int) -> None:
         keep = bisect.bisect_right(self._stamps, after_ns)
         del self._stamps[keep:]
         del self._poses[keep:]

@@ -83,6 +83,7 @@ class Synchroniser:
         self._image_order = [StampOrder() for _ in range(num_cameras)]
         self._cloud_order = StampOrder()
         self.restarts = 0  # times header time jumped back on the cloud stream
+        self._timeline = 0  # the odometry timeline this stream follows (PoseSource.follow_jump)
         self._carry_session = False  # a new-session frame was dropped: the next released frame starts it
         self._released_without: deque[tuple[int, frozenset[int]]] = deque(maxlen=64)  # (stamp, cameras missing)
         self.late = [0] * num_cameras  # images that came after their frame was released without them
@@ -148,7 +149,7 @@ class Synchroniser:
             self._pending = deque(c for c in self._pending if c.stamp_ns < stamp_ns)
             for k in range(self.num_cameras):
                 self._forget_images(k, after_ns=stamp_ns + self._slop_ns)
-            self._poses.restart(stamp_ns + self._slop_ns)
+            self._timeline = self._poses.follow_jump(stamp_ns + self._slop_ns, self._timeline)
         if self._first_cloud is None:
             self._first_cloud = stamp_ns
         self._pending.append(_Cloud(stamp_ns, points, self._clock(), new_session))

@@ -7,7 +7,6 @@ import re
 import signal
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -169,13 +168,19 @@ def test_bad_input_to_the_process_is_warned_once_per_cause_counted_in_diagnostic
         first_run: NodeProcess, driver: Driver) -> None:
     pub, place = driver.pub, synthetic_place(1)
     t = T0 + 40.0
-    for _ in range(3):
+
+    def dropped(cause: str) -> int:
+        return int(driver.listener.latest_values("inputs").get(f"dropped {cause}", "0"))
+
+    for repeat in range(3):
         t += 1.0
         pub.lidar.publish(cloud_without_xyz(t))
         pub.lidar.publish(truncated_cloud(place, t + 0.1))
         pub.cameras[0].publish(image_with_unknown_encoding(t, compressed=False))
         pub.cameras[1].publish(image_of_wrong_size(t, compressed=False))
-        time.sleep(0.2)  # sensor-data QoS keeps the last 5 messages per topic: do not burst past it
+        # sensor-data QoS keeps the last 5 messages per topic: the next round waits until this one is counted
+        causes = (inputs.CLOUD_NO_XYZ, inputs.CLOUD_TRUNCATED, inputs.IMAGE_ENCODING, inputs.IMAGE_SIZE)
+        assert wait_until(lambda: all(dropped(c) >= repeat + 1 for c in causes), 10)
     t += 1.0
     driver.feed(1, t)
     pub.publish(place, t)  # duplicate stamps
@@ -188,9 +193,6 @@ def test_bad_input_to_the_process_is_warned_once_per_cause_counted_in_diagnostic
     assert wait_until(lambda: driver.processed() > before)
     driver.feed(1, t + 3.0, skip=(4,))
     driver.feed(1, t + 6.0, skip=(4,))  # camera 4 silent for 6 s > sync.camera_timeout
-
-    def dropped(cause: str) -> int:
-        return int(driver.listener.latest_values("inputs").get(f"dropped {cause}", "0"))
 
     expected = {inputs.CLOUD_NO_XYZ: 3, inputs.CLOUD_TRUNCATED: 3, inputs.IMAGE_ENCODING: 3, inputs.IMAGE_SIZE: 3,
                 "cloud: duplicate stamp": 1, "cloud: out of order": 1, "image: duplicate stamp": 6,

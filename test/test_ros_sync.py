@@ -242,15 +242,17 @@ def test_a_busy_worker_drops_older_waiting_frames_and_never_queues_more_than_one
 
 def test_stopping_the_worker_finishes_the_current_frame_first() -> None:
     done: list[int] = []
+    started = threading.Event()
 
     def handle(item: int) -> None:
-        time.sleep(0.2)
+        started.set()
+        time.sleep(0.2)  # a frame's work
         done.append(item)
 
     worker: Worker[int] = Worker(handle)
     worker.start()
     worker.submit(1)
-    time.sleep(0.05)
+    assert started.wait(5)
     assert worker.stop(drain=False, timeout=5)
     assert done == [1]
 
@@ -264,10 +266,16 @@ def test_an_exception_in_one_frame_does_not_end_the_worker() -> None:
             raise RuntimeError("bad frame")
         done.append(item)
 
-    worker: Worker[int] = Worker(handle, on_error=lambda item, err: errors.append(str(err)))
+    failed = threading.Event()
+
+    def on_error(item: int, err: Exception) -> None:
+        errors.append(str(err))
+        failed.set()
+
+    worker: Worker[int] = Worker(handle, on_error=on_error)
     worker.start()
     worker.submit(1)
-    time.sleep(0.1)
+    assert failed.wait(5)  # only then the next: the worker keeps the newest waiting frame alone
     worker.submit(2)
     assert worker.stop(drain=True, timeout=5)
     assert errors == ["bad frame"] and done == [2]
@@ -367,6 +375,33 @@ def test_odometry_that_jumps_back_forgets_the_old_timeline_and_interpolates_the_
         assert odom.offer(t * S, pose, "odom") is None
     assert len(odom) == 2 and odom.newest == 11 * S
     assert odom.pose_at(10 * S + S // 2)[0, 3] == pytest.approx(2.0)
+
+
+def test_poses_of_the_new_timeline_that_arrive_before_the_jumped_cloud_are_kept() -> None:
+    odom = OdometryBuffer(slop=0.05, max_gap=1.0, jump_back=5.0)
+    sync = Synchroniser(SyncConfig(max_wait=100.0, min_cameras=0), 0, poses=odom, clock=FakeClock())
+    for t in (100, 101):
+        odom.offer(t * S, np.eye(4), "odom")
+        sync.offer_cloud(t * S, POINTS)
+    sync.ready()
+    for t in (10, 11, 12):  # odometry runs ahead of the clouds on the replayed timeline
+        odom.offer(t * S, np.eye(4), "odom")
+    sync.offer_cloud(10 * S, POINTS)
+    assert odom.newest == 12 * S and len(odom) == 3
+    (frame,) = sync.ready()
+    assert frame.new_session and frame.pose is not None
+
+
+def test_a_cloud_that_jumps_back_before_odometry_forgets_the_old_poses_once() -> None:
+    odom = OdometryBuffer(slop=0.05, max_gap=1.0, jump_back=5.0)
+    for t in (100, 101):
+        odom.offer(t * S, np.eye(4), "odom")
+    cloud_timeline = odom.follow_jump(10 * S, 0)  # the cloud stream jumped to 10 s first
+    assert odom.newest is None and cloud_timeline == 1
+    for t in (10, 11):  # in order on the new timeline: not a second jump
+        assert odom.offer(t * S, np.eye(4), "odom") is None
+    assert odom.follow_jump(10 * S + S // 2, 0) == 1  # a second stream's jump to the same timeline
+    assert len(odom) == 2  # keeps the poses the first one already let in
 
 
 def test_an_image_that_arrives_after_its_frame_went_without_it_is_counted_late() -> None:

@@ -15,7 +15,6 @@ import random
 import signal
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,6 +40,7 @@ from msg_tools.pointcloud import array_to_pointcloud2
 from msg_tools.synth import SynthConfig, SyntheticDrive
 from msg_tools.transforms import pose_to_odometry
 from vseq2pc_ros import inputs
+from vseq2pc_ros.sync import TIME_JUMPED
 from vseq2pc_ros.node import Vseq2pcNode
 
 REPO = Path(__file__).resolve().parents[1]
@@ -55,7 +55,6 @@ DT = 0.25
 REVISIT = 100.0  # s after the map pass
 WAIT = 60.0
 QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
-PACE = 0.1  # s between published frames
 LABEL_CLOUD = np.dtype([("x", np.float32), ("y", np.float32), ("z", np.float32), ("label", np.uint32)])
 
 
@@ -153,17 +152,32 @@ def ros(drive: Drive, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Ros]
         yield Ros(context, node, driver, listener, pubs, map_path, drive.info)
 
 
-def test_camera_sequences_revisiting_the_map_are_matched_to_the_scans_at_their_poses(ros: Ros, drive: Drive) -> None:
+def publish_map_pass(ros: Ros, drive: Drive, start: float = T0) -> None:
+    """The LiDAR drive, one scan after the other: each waits until the node has added the last."""
+    size = len(ros.node.map)
     for i in range(FRAMES):
-        ros.odom(drive.poses[i], T0 + i * DT)
-        ros.cloud(cloud_msg(drive.clouds[i], T0 + i * DT))
-        time.sleep(PACE)
-    assert wait_until(lambda: len(ros.node.map) == FRAMES), ros.node.health()
+        ros.odom(drive.poses[i], start + i * DT)
+        ros.cloud(cloud_msg(drive.clouds[i], start + i * DT))
+        assert wait_until(lambda: len(ros.node.map) == size + i + 1, WAIT), ros.node.health()
+
+
+def camera_frames_handled(ros: Ros) -> int:
+    return sum(n for k, n in ros.node.decisions.snapshot().items() if k.startswith("camera frames"))
+
+
+def publish_camera_pass(ros: Ros, drive: Drive, start: float) -> None:
+    """The camera drive along the same route: each frame waits until the node has taken the last."""
+    handled = camera_frames_handled(ros)
     for i in range(FRAMES):
-        stamp = T0 + REVISIT + i * DT
+        stamp = start + i * DT
         ros.odom(drive.poses[i], stamp)
         ros.camera(depth_msg(drive.depth[i], stamp), labels_msg(drive.labels[i], stamp), stamp)
-        time.sleep(PACE)  # the node's input queues keep 10 per topic: no bursts beyond them
+        assert wait_until(lambda: camera_frames_handled(ros) == handled + i + 1, WAIT), ros.node.health()
+
+
+def test_camera_sequences_revisiting_the_map_are_matched_to_the_scans_at_their_poses(ros: Ros, drive: Drive) -> None:
+    publish_map_pass(ros, drive)
+    publish_camera_pass(ros, drive, T0 + REVISIT)
     xy = np.array([p[:2, 3] for p in drive.poses])
     queries = int((sequence_table(xy)[:, 0] >= 0).sum())  # frames with a frame 15 m further on
     assert queries >= 8
@@ -182,6 +196,24 @@ def test_camera_sequences_revisiting_the_map_are_matched_to_the_scans_at_their_p
     off = np.hypot(*(xy[best] - xy[:queries]).T)
     assert (off < 3.0).sum() >= MATCHED, f"best scan this far from each query: {np.round(off, 1)} m"
     assert wait_until(lambda: ros.listener.latest_values(": detector").get("loops") == str(queries), 10)
+
+
+def test_a_camera_replay_that_jumps_back_in_time_starts_a_new_session_and_is_matched_again(
+        ros: Ros, drive: Drive) -> None:
+    publish_map_pass(ros, drive)
+    publish_camera_pass(ros, drive, T0 + REVISIT)
+    assert ros.listener.wait(lambda o: len(o.loops) >= 8, WAIT), ros.node.health()
+    first = len(ros.listener.out.loops)
+    logged = ros.node.warnings.logged
+    replay = T0 + REVISIT - 50.0  # 54 s before the newest stamps: more than sync.jump_back (5 s)
+    publish_camera_pass(ros, drive, replay)
+    assert ros.listener.wait(lambda o: len(o.loops) >= 2 * first, WAIT), (first, ros.listener.out.loops)
+    again = ros.listener.out.loops[first:]
+    assert [q for q, _ in again] == pytest.approx([replay + q * DT for q in range(len(again))])
+    assert [m for _, m in again] == pytest.approx([m for _, m in ros.listener.out.loops[:first]])
+    assert ros.node.fixes.snapshot()[TIME_JUMPED] == 2  # the depth and the label stream
+    assert ros.node.warnings.logged - logged == 1 and TIME_JUMPED in ros.node.warnings.causes
+    assert ros.node.drops.snapshot().get("depth: out of order", 0) == 0
 
 
 def test_bad_input_is_dropped_counted_warned_once_and_the_map_is_kept(ros: Ros, drive: Drive) -> None:

@@ -140,9 +140,10 @@ class SyncConfig:
     max_wait: float = 0.5  # s of wall time a cloud / camera frame waits for its pose (and camera_info)
     image_buffer: int = 16  # unpaired depth / label images kept per stream
     max_pending: int = 32  # clouds and camera frames waiting for poses at most (oldest dropped)
+    jump_back: float = 5.0  # s: a stamp this much older than its stream's newest starts a new session; 0 = refuse
 
     def __post_init__(self) -> None:
-        require_finite_non_negative(self, "slop", "odom_max_gap", "max_wait")
+        require_finite_non_negative(self, "slop", "odom_max_gap", "max_wait", "jump_back")
         require(self.image_buffer >= 1, f"image_buffer={self.image_buffer}; it must be >= 1")
         require(self.max_pending >= 1, f"max_pending={self.max_pending}; it must be >= 1")
 

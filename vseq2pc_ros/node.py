@@ -48,7 +48,7 @@ from .inputs import CLOUD_NAN, SIZE_MISMATCH, depth_image, intrinsics, label_ima
 from .mapstore import open_map
 from .outputs import candidate_rows, loop_closure_msg, table_msg
 from .params import all_leaves, describe_all, make_runtime, settings_from
-from .sync import NO_PAIR, ImagePairs, MotionFilter, PoseQueue
+from .sync import NO_PAIR, TIME_JUMPED, ImagePairs, MotionFilter, PoseQueue
 from .worker import FifoWorker
 
 NODE_NAME = "vseq2pc"
@@ -75,6 +75,7 @@ class CameraItem:
     K: np.ndarray
     pose: np.ndarray
     arrival: float
+    timeline: int  # header-time sessions started so far: a sequence never spans two
 
 
 def build_net(cfg: NodeConfig) -> Vseq2pcNet:
@@ -116,15 +117,18 @@ class Vseq2pcNode(Node):
         self._map_lock = threading.Lock()
         self.builder = SequenceBuilder(cfg.sequence.builder())
         self._frame_index = 0
+        self._builder_timeline = 0  # worker thread: the camera timeline the builder's frames come from
 
         self._sensor_subscriptions: list[SensorSubscription] = []
         self._input_qos = cfg.input_qos
-        self.poses = OdometryBuffer(slop=cfg.sync.slop, max_gap=cfg.sync.odom_max_gap)
+        self.poses = OdometryBuffer(slop=cfg.sync.slop, max_gap=cfg.sync.odom_max_gap, jump_back=cfg.sync.jump_back)
         self._subscribe(Odometry, cfg.odom_topic, self._on_odom)  # first: poses before sensors
-        self.pairs = ImagePairs(slop=cfg.sync.slop, capacity=cfg.sync.image_buffer)
+        self.pairs = ImagePairs(slop=cfg.sync.slop, capacity=cfg.sync.image_buffer, jump_back=cfg.sync.jump_back)
         self.scan_queue = PoseQueue(self.poses, max_wait=cfg.sync.max_wait, capacity=cfg.sync.max_pending)
         self.camera_queue = PoseQueue(self.poses, max_wait=cfg.sync.max_wait, capacity=cfg.sync.max_pending)
-        self._cloud_order = StampOrder()
+        self._cloud_order = StampOrder(round(cfg.sync.jump_back * NS_PER_S))
+        self._timelines = {"cloud": 0, "camera": 0}  # odometry timeline each stream follows (follow_jump)
+        self.camera_sessions = 0  # times header time jumped back on the depth or the label stream
         self._scan_filter, self._camera_filter = MotionFilter(), MotionFilter()
         self._camera: tuple[np.ndarray, int, int] | None = None  # K, width, height
 
@@ -192,6 +196,10 @@ class Vseq2pcNode(Node):
         if refused is not None:
             self._reject(InputRejected(f"cloud: {refused}", f"stamp {ns / NS_PER_S:.9f}"))
             return
+        if self._cloud_order.jumped_from is not None:
+            self._time_jumped("cloud", ns, self._cloud_order.jumped_from)
+            self.scan_queue.forget_after(ns)
+            self._scan_filter.reset()
         if removed:
             self.fixes.add(CLOUD_NAN, removed)
             self.warnings(CLOUD_NAN, f"{removed} of {removed + len(points)} points had NaN/inf x, y or z")
@@ -208,10 +216,16 @@ class Vseq2pcNode(Node):
             self._reject(InputRejected(err.reason, f"{topic}: {err.detail}"))
             return
         before = self.pairs.unpaired
+        newest = self.pairs.orders[kind].last
         refused, pair = self.pairs.offer(kind, ns, image)
         if refused is not None:
             self._reject(InputRejected(f"{kind}: {refused}", f"{topic} stamp {ns / NS_PER_S:.9f}"))
             return
+        if self.pairs.jumped and newest is not None:  # depth and labels each jump: frames between them none
+            self._time_jumped(kind, ns, newest)
+            self.camera_sessions += 1
+            self.camera_queue.forget_after(ns)
+            self._camera_filter.reset()
         if self.pairs.unpaired > before:
             self.drops.add(NO_PAIR, self.pairs.unpaired - before)
             self.warnings(NO_PAIR, f"no partner within sync.slop={self.settings.sync.slop} s")
@@ -223,6 +237,16 @@ class Vseq2pcNode(Node):
                 return
             self.camera_queue.put(stamp, (depth, labels, time.monotonic()))
             self._release()
+
+    def _time_jumped(self, stream: str, ns: int, newest_ns: int) -> None:
+        """Header time went back on one stream: odometry follows; warn once, count each time."""
+        key = "camera" if stream in ("depth", "labels") else stream
+        self._timelines[key] = self.poses.follow_jump(ns + self.pairs.slop_ns, self._timelines[key])
+        self.fixes.add(TIME_JUMPED)
+        self.warnings(TIME_JUMPED, f"{stream} stamp {ns / NS_PER_S:.3f} s is {(newest_ns - ns) / NS_PER_S:.1f} s "
+                                   f"before the last one, more than sync.jump_back = {self.settings.sync.jump_back} s "
+                                   "(a bag played again or with --loop, a simulator reset): a new session starts in "
+                                   "the same map, whose scans stay matchable; no camera sequence spans the jump")
 
     def _release(self) -> None:
         if self._closed:
@@ -248,7 +272,7 @@ class Vseq2pcNode(Node):
                                             min_interval=cfg.camera.min_interval):
                 self.decisions.add("camera frames skipped (camera.min_distance / min_interval)")
                 continue
-            self.worker.submit(CameraItem(item.stamp_ns, depth, labels, K, pose, arrival))
+            self.worker.submit(CameraItem(item.stamp_ns, depth, labels, K, pose, arrival, self.camera_sessions))
         after = sum(self.scan_queue.drops.values()) + sum(self.camera_queue.drops.values())
         if after > before:
             for queue in (self.scan_queue, self.camera_queue):
@@ -267,6 +291,12 @@ class Vseq2pcNode(Node):
             self.model_time.add(time.monotonic() - start)
             return
         cfg = self.settings
+        if item.timeline != self._builder_timeline:  # header time jumped back: start sequences afresh
+            unfinished = self.builder.pending
+            self.builder.reset()
+            self._builder_timeline = item.timeline
+            if unfinished:
+                self.decisions.add("queries left unfinished by a time jump", unfinished)
         feature = camera_feature(item.depth, item.labels, item.K, cfg.extrinsics.lidar_T_cam())
         batch = self.builder.push(feature, stamp=item.stamp_ns / NS_PER_S, pose=item.pose, index=self._frame_index)
         self._frame_index += 1

@@ -80,6 +80,9 @@ DOCS: dict[str, ParamDoc] = {
                               0.0, 60.0, dynamic=True),
     "sync.image_buffer": ParamDoc("unpaired depth / label images kept per stream", 1, 1000),
     "sync.max_pending": ParamDoc("clouds and camera frames waiting for a pose at most (oldest dropped)", 1, 10000),
+    "sync.jump_back": ParamDoc("s: a header stamp this much older than its stream's newest (a bag played again, "
+                               "--loop, a simulator reset) starts a new session in the same map; 0 = refuse it "
+                               "as out of order", 0.0, 86400.0),
     "map.path": ParamDoc("scan map file (.npz), loaded at start when it exists, saved on ~/save_map and at "
                          "shutdown; empty = in memory only"),
     "map.save_on_shutdown": ParamDoc("save the map to map.path when the node stops (Ctrl-C, SIGTERM)"),

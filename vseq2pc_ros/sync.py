@@ -20,23 +20,34 @@ NO_POSE = "no pose: odometry does not cover the stamp"
 POSE_TIMEOUT = "no pose: odometry did not arrive in time"
 NO_CAMERA_INFO = "camera: no camera_info"
 QUEUE_FULL = "sync: too many items waiting for poses"
+TIME_JUMPED = "time jumped back: new session"
+OLD_TIMELINE = "sync: waiting when time jumped back"
 
 
 class ImagePairs:
     """Depth and label images of one camera; a pair comes out once both stamps agree within ``slop``."""
 
-    def __init__(self, *, slop: float, capacity: int) -> None:
+    def __init__(self, *, slop: float, capacity: int, jump_back: float = 0.0) -> None:
         self.slop_ns = round(slop * NS_PER_S)
         self.capacity = capacity
         self._buffers: dict[str, deque[tuple[int, Any]]] = {"depth": deque(), "labels": deque()}
-        self.orders = {"depth": StampOrder(), "labels": StampOrder()}
+        jump_back_ns = round(jump_back * NS_PER_S)
+        self.orders = {"depth": StampOrder(jump_back_ns), "labels": StampOrder(jump_back_ns)}
         self.unpaired = 0  # images given up without a partner
+        self.jumped = False  # the last offered image started a new timeline (see StampOrder)
 
     def offer(self, kind: str, stamp_ns: int, image: Any) -> tuple[str | None, tuple[int, Any, Any] | None]:
         """(refusal reason or None, (stamp_ns, depth, labels) when a pair completed or None)."""
         refused = self.orders[kind].check(stamp_ns)
+        self.jumped = refused is None and self.orders[kind].jumped_from is not None
         if refused is not None:
             return refused, None
+        if self.jumped:  # images buffered after this stamp belong to the old timeline: they never pair
+            for buffer in self._buffers.values():
+                kept = [item for item in buffer if item[0] <= stamp_ns + self.slop_ns]
+                self.unpaired += len(buffer) - len(kept)
+                buffer.clear()
+                buffer.extend(kept)
         other_kind = "labels" if kind == "depth" else "depth"
         other = self._buffers[other_kind]
         best = None
@@ -95,6 +106,12 @@ class PoseQueue:
             self._items.popleft()
             self.drops[QUEUE_FULL] += 1
 
+    def forget_after(self, stamp_ns: int) -> None:
+        """Time jumped back to ``stamp_ns``: items stamped after it belong to the old timeline."""
+        kept = [item for item in self._items if item.stamp_ns <= stamp_ns]
+        self.drops[OLD_TIMELINE] += len(self._items) - len(kept)
+        self._items = deque(kept)
+
     def ready(self, extra_ready: Callable[[Any], bool] = lambda payload: True,
               extra_reason: str = NO_CAMERA_INFO) -> list[tuple[Waiting, np.ndarray]]:
         """Items whose pose is known (and ``extra_ready``), in order; items past hope are dropped."""
@@ -124,6 +141,10 @@ class MotionFilter:
     """Keeps an item when it is at least ``min_distance`` m and ``min_interval`` s after the last kept one."""
 
     def __init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the last kept item (time jumped back: the next item is kept)."""
         self._last_xy: np.ndarray | None = None
         self._last_ns: int | None = None
 
