@@ -31,6 +31,8 @@ setup(
         "rosbags>=0.10",
         "small_gicp>=1.0",  # registration for geometric verification
         "opencv-python-headless>=4.8",  # Bayer demosaicing and YUV -> RGB of camera-native encodings
+        "onnxruntime>=1.17",  # the exported network (model.precision onnx / int8 / auto)
+        "onnx>=1.15",  # int8 quantisation (onnxruntime.quantization) reads and writes graphs with it
     ],
     extras_require={
         # ROS 2 from PyPI for machines without a ROS installation; a vehicle with

@@ -1,12 +1,11 @@
 """Building an LCPR from a config and turning raw sensor data into descriptors."""
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import logging
 import os
 import pickle
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -19,10 +18,13 @@ from .errors import CheckpointError
 from .models import LCPR
 from .preprocess import CUSTOM, LidarGeometry, LidarPreset, cameras_tensor, lidar_preset, range_image
 from .preprocess.camera import CameraInput
+from .runtime import Backend, Choice, choose_backend
 
 log = logging.getLogger(__name__)
 
-PRECISIONS = ("fp32", "bf16")
+#: fp32 / bf16: torch (bf16 = autocast); onnx: the exported graph in ONNX Runtime (exact); int8: its
+#: statically quantised graph (made by lcpr_quantize); auto: the fastest exact one here (lcpr_core.runtime).
+PRECISIONS = ("fp32", "bf16", "onnx", "int8", "auto")
 #: ModelConfig fields a checkpoint's 'config' entry fixes (the architecture and its input sizes).
 CHECKPOINT_FIELDS = ("width", "num_cameras", "image_size", "range_size", "lidar")
 
@@ -40,7 +42,7 @@ class ModelConfig:
     lidar_geometry: LidarGeometry = field(default_factory=LidarGeometry)
     range_size: tuple[int, int] = (0, 0)  # range image (height, width) replacing the preset's; (0, 0) = the preset's
     width: float = 1.0  # channel multiplier (1.0 = released network; trained narrow models: 0.25-0.5)
-    precision: str = "fp32"  # fp32 | bf16 (autocast)
+    precision: str = "auto"  # auto | fp32 | bf16 (autocast) | onnx | int8 (see PRECISIONS)
     device: str = "cpu"
     threads: int = 0  # torch intra-op threads; 0 = leave torch's default
     fast_decode: bool = False  # JPEG draft-mode decoding of compressed images
@@ -162,14 +164,13 @@ class Describer:
             torch.set_num_threads(self.config.threads)
         if self.model is None:
             self.model = build_model(self.config)
+        self.choice: Choice = choose_backend(self.config, self.model)
+        self.backend: Backend = self.choice.backend  # the path descriptors are computed on
 
-    @contextlib.contextmanager
-    def _precision(self) -> Iterator[None]:
-        device_type = torch.device(self.config.device).type
-        with torch.inference_mode(), torch.autocast(
-            device_type, dtype=torch.bfloat16, enabled=self.config.precision == "bf16"
-        ):
-            yield
+    @property
+    def path(self) -> str:
+        """The precision in use: ``config.precision``, or what ``auto`` chose."""
+        return self.backend.name
 
     def inputs(
         self, images: Sequence[CameraInput | None], points: np.ndarray
@@ -181,11 +182,7 @@ class Describer:
 
     def describe_tensors(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:
         """Batched model inputs -> B x 256 float32 descriptors."""
-        assert self.model is not None
-        device = self.config.device
-        with self._precision():
-            desc = self.model(images.to(device), ranges.to(device))
-        return desc.float().cpu().numpy()
+        return self.backend(images, ranges)
 
     def describe(self, images: Sequence[CameraInput | None], points: np.ndarray) -> np.ndarray:
         """One frame (N camera images, None for a missing one; N x >=3 points) -> 256 float32."""

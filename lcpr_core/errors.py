@@ -27,3 +27,7 @@ class PoseGraphError(LcprError):
 
 class VerificationError(LcprError, ValueError):
     """Geometric verification was given clouds, transforms or settings it cannot use."""
+
+
+class RuntimeSetupError(LcprError):
+    """An inference path (exported graph, int8 model, runtime library) cannot be built or loaded."""

@@ -1,6 +1,6 @@
 """Offline evaluation of the loop detector on a rosbag2, against the bag's own odometry (no DDS, no rclpy).
 
-    lcpr_eval BAG [--weights FILE] [--precision fp32|bf16] [--threads N] [--limit N] [--out DIR] ...
+    lcpr_eval BAG [--weights FILE] [--precision auto|fp32|bf16|onnx|int8] [--threads N] [--limit N] [--out DIR] ...
 
 Reads synchronised frames with :func:`msg_tools.bags.read_frames`, runs
 :class:`lcpr_core.detector.LoopDetector` frame by frame (collecting every candidate:
@@ -358,7 +358,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     g.add_argument("--weights", default="", help="LCPR checkpoint or state dict (default: seeded random init)")
     g.add_argument("--imagenet", default="", help="torchvision resnet18 state dict, used without --weights")
     g.add_argument("--seed", type=int, default=0, help="random initialisation seed (default 0)")
-    g.add_argument("--precision", choices=PRECISIONS, default="fp32", help="network precision (default fp32)")
+    g.add_argument("--precision", choices=PRECISIONS, default="auto",
+                   help="inference path, as the node's model.precision (default auto: the fastest exact one here)")
     g.add_argument("--threads", type=int, default=0, help="torch threads (default: torch's choice)")
     g.add_argument("--image-size", type=int, nargs=2, metavar=("H", "W"), default=None,
                    help="camera input size, multiples of 32 (default 256 704, the released model's)")
@@ -407,7 +408,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 #: Flags whose settings a --params-file gives (dest, default): giving both would leave it unclear which ran.
 _FILE_SETTINGS = (("image_size", None), ("lidar", None), ("camera_topics", None), ("lidar_topic", None),
                   ("slop", 0.05), ("max_distance", 1.0), ("exclude_recent", 30.0), ("keyframe_interval", 0.5),
-                  ("keyframe_distance", 0.0), ("precision", "fp32"))
+                  ("keyframe_distance", 0.0), ("precision", "auto"))
 
 
 def options_from_params_file(args: argparse.Namespace) -> EvalOptions:

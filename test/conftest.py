@@ -10,6 +10,12 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _graph_cache(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """Exported ONNX graphs of seeded test models go to a cache of this run, not the user's."""
+    os.environ["XDG_CACHE_HOME"] = str(tmp_path_factory.mktemp("xdg_cache"))
+
+
 def shared_dir() -> Path | None:
     for candidate in (os.environ.get("LCPR_SHARED_DIR"), REPO.parent / "shared", REPO / "shared"):
         if candidate and (Path(candidate) / "reference").is_dir():

@@ -1,0 +1,14 @@
+"""Inference paths for LCPR behind one call: torch fp32 / bf16, ONNX Runtime fp32 and int8.
+
+:func:`make_backend` turns a :class:`~lcpr_core.describer.ModelConfig`'s ``precision`` into a
+callable ``(images, ranges) -> B x 256`` (see :mod:`.backends`); ``"auto"`` measures the exact
+candidates once on this machine (:mod:`.choose`). Exported graphs are cached next to the weights
+under a hash of everything that shapes them (:mod:`.onnx_cache`); int8 graphs are made offline by
+``lcpr_quantize`` (:mod:`.quantize`).
+"""
+from .backends import Backend, OrtBackend, TorchBackend
+from .choose import EXACT_COSINE, Choice, choose_backend, cpu_model
+from .onnx_cache import export_onnx, graph_key, onnx_path
+
+__all__ = ["Backend", "TorchBackend", "OrtBackend", "choose_backend", "Choice", "EXACT_COSINE", "cpu_model",
+           "export_onnx", "graph_key", "onnx_path"]

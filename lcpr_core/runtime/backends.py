@@ -1,0 +1,60 @@
+"""One forward pass, three ways: torch (fp32 or bf16 autocast) and ONNX Runtime (an exported graph)."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
+import torch
+
+from ..errors import RuntimeSetupError
+
+if TYPE_CHECKING:
+    from ..models import LCPR
+
+
+class Backend(Protocol):
+    name: str  # the ModelConfig.precision value it implements
+
+    def __call__(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:
+        """B x N x 3 x H x W images, B x 1 x h x w ranges -> B x 256 float32 descriptors."""
+
+
+class TorchBackend:
+    """The torch model, in fp32 or under bf16 autocast."""
+
+    def __init__(self, model: LCPR, *, device: str = "cpu", bf16: bool = False) -> None:
+        self.model, self.device, self.bf16 = model, device, bf16
+        self.name = "bf16" if bf16 else "fp32"
+
+    def __call__(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:
+        device_type = torch.device(self.device).type
+        with torch.inference_mode(), torch.autocast(device_type, dtype=torch.bfloat16, enabled=self.bf16):
+            desc = self.model(images.to(self.device), ranges.to(self.device))
+        return desc.float().cpu().numpy()
+
+
+class OrtBackend:
+    """An exported LCPR graph run by ONNX Runtime on the CPU."""
+
+    def __init__(self, path: str | os.PathLike[str], *, threads: int = 0, name: str = "onnx") -> None:
+        try:
+            import onnxruntime as ort
+        except ImportError as err:
+            raise RuntimeSetupError(f"model.precision={name!r} needs onnxruntime (pip install onnxruntime); "
+                                    "accepted without it: fp32, bf16") from err
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = threads  # 0 = one per core
+        options.inter_op_num_threads = 1
+        options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        options.log_severity_level = 3
+        try:
+            self.session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+        except Exception as err:  # onnxruntime raises its own exception types for bad files
+            raise RuntimeSetupError(f"ONNX Runtime cannot load {str(path)!r}: {err}") from err
+        self.path, self.name = Path(path), name
+
+    def __call__(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:
+        feeds = {"images": images.detach().cpu().float().numpy(), "ranges": ranges.detach().cpu().float().numpy()}
+        return np.asarray(self.session.run(["descriptor"], feeds)[0], dtype=np.float32)

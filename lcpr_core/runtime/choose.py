@@ -1,0 +1,137 @@
+"""Building the backend a ModelConfig names; ``precision="auto"`` measures the exact paths once.
+
+``auto`` times torch fp32, torch bf16 autocast and ONNX Runtime fp32 on this CPU (a warm-up and
+a few forward passes each, on a fixed probe input) and keeps the fastest whose descriptor has a
+cosine of at least :data:`EXACT_COSINE` to torch fp32. The choice is logged with the CPU model,
+because it differs between machines: bf16 wins on CPUs with AMX or fast bf16 dot products
+(e.g. Zen 4) and loses on others. On a GPU, ``auto`` is torch fp32 without measuring.
+An explicit ``onnx`` or ``int8`` is checked against torch fp32 on the probe before use.
+"""
+from __future__ import annotations
+
+import logging
+import platform
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from ..errors import RuntimeSetupError
+from ..timing import median_seconds
+from .backends import Backend, OrtBackend, TorchBackend
+from .onnx_cache import exported_graph, graph_key, onnx_path
+
+if TYPE_CHECKING:
+    from ..describer import ModelConfig
+    from ..models import LCPR
+
+log = logging.getLogger(__name__)
+
+EXACT_COSINE = 0.99999  # what "exact" means for auto and for an exported graph
+INT8_COSINE = 0.99  # an int8 graph further than this from fp32 on the probe is refused as broken
+AUTO_CANDIDATES = ("fp32", "bf16", "onnx")
+_chosen: dict[tuple[str, str, int], str] = {}  # (graph key, device, threads) -> what auto chose in this process
+
+
+def cpu_model() -> str:
+    """The CPU's marketing name (from /proc/cpuinfo on Linux)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine() or "unknown CPU"
+
+
+def probe_inputs(model: LCPR, batch: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+    """A fixed, frame-like input: clamped normal images, ranges 2-80 m with 10 % no-return."""
+    gen = torch.Generator().manual_seed(0)
+    images, ranges = model.example_inputs(batch)
+    images = torch.randn(images.shape, generator=gen).clamp_(-3, 3)
+    ranges = 2 + 78 * torch.rand(ranges.shape, generator=gen)
+    return images, ranges.masked_fill_(torch.rand(ranges.shape, generator=gen) < 0.1, -1.0)
+
+
+def cosine(a: np.ndarray, b: np.ndarray) -> float:
+    """The smallest row-wise cosine between two B x D arrays."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    num = (a * b).sum(1)
+    den = np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1)
+    return float((num / np.maximum(den, 1e-30)).min())
+
+
+@dataclass
+class Choice:
+    """What ``auto`` measured: ms per frame and cosine to torch fp32 per candidate, and the winner."""
+
+    backend: Backend
+    ms: dict[str, float] = field(default_factory=dict)
+    cosines: dict[str, float] = field(default_factory=dict)
+    failed: dict[str, str] = field(default_factory=dict)  # candidate -> why it could not run
+
+    def summary(self) -> str:
+        parts = [f"{n} {self.ms[n]:.1f} ms (cos {self.cosines[n]:.7f})" for n in self.ms]
+        parts += [f"{n}: {why}" for n, why in self.failed.items()]
+        return "; ".join(parts)
+
+
+def _build(name: str, config: ModelConfig, model: LCPR) -> Backend:
+    if name in ("fp32", "bf16"):
+        return TorchBackend(model, device=config.device, bf16=name == "bf16")
+    if config.device != "cpu":
+        raise RuntimeSetupError(f"model.precision={name!r} runs on the CPU only; with model.device="
+                                f"{config.device!r} accepted: auto, fp32, bf16")
+    if name == "onnx":
+        return OrtBackend(exported_graph(config, model), threads=config.threads, name="onnx")
+    if name == "int8":
+        path = onnx_path(config, "int8")
+        if not path.is_file():
+            weights = f" --weights {config.weights}" if config.weights else ""
+            raise RuntimeSetupError(f"model.precision='int8' needs the int8 graph of these weights at {str(path)!r}; "
+                                    f"make it once with: lcpr_quantize{weights} (accepted without it: auto, fp32, "
+                                    "bf16, onnx)")
+        return OrtBackend(path, threads=config.threads, name="int8")
+    raise RuntimeSetupError(f"model.precision={name!r}; accepted: auto, fp32, bf16, onnx, int8")
+
+
+def choose_backend(config: ModelConfig, model: LCPR, *, repeats: int = 3) -> Choice:
+    """The backend ``config.precision`` asks for (``auto``: measured here, see the module doc)."""
+    reference = TorchBackend(model, device=config.device)
+    if config.precision == "auto" and torch.device(config.device).type != "cpu":
+        return Choice(reference)
+    images, ranges = probe_inputs(model)
+    expected = reference(images, ranges)
+    if config.precision != "auto":
+        backend = _build(config.precision, config, model)
+        if config.precision in ("onnx", "int8"):
+            cos = cosine(backend(images, ranges), expected)
+            floor = EXACT_COSINE if config.precision == "onnx" else INT8_COSINE
+            if cos < floor:
+                raise RuntimeSetupError(f"{backend.path} gives descriptors at cosine {cos:.6f} to the torch model "  # type: ignore[attr-defined]
+                                        f"(at least {floor} expected): delete it to export it again")
+            log.info("LCPR: %s path, cosine %.7f to torch fp32 on the probe input", config.precision, cos)
+        return Choice(backend)
+    memo = (graph_key(config), config.device, torch.get_num_threads())
+    if memo in _chosen:  # measured once per process: a second detector or node takes the same path
+        return Choice(reference if _chosen[memo] == "fp32" else _build(_chosen[memo], config, model))
+    choice = Choice(reference)
+    best = None
+    for name in AUTO_CANDIDATES:
+        try:
+            backend = reference if name == "fp32" else _build(name, config, model)
+            out = backend(images, ranges)
+            choice.cosines[name] = 1.0 if name == "fp32" else cosine(out, expected)
+            choice.ms[name] = 1000 * median_seconds(lambda b=backend: b(images, ranges), repeats=repeats, warmup=0)
+        except (RuntimeSetupError, RuntimeError) as err:
+            choice.failed[name] = str(err)
+            continue
+        exact = choice.cosines[name] >= EXACT_COSINE
+        if exact and (best is None or choice.ms[name] < choice.ms[best]):
+            best, choice.backend = name, backend
+    _chosen[memo] = best or "fp32"
+    log.info("LCPR: precision auto chose %s on %s (%d threads): %s", best, cpu_model(), torch.get_num_threads(),
+             choice.summary())
+    return choice
