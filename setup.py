@@ -50,6 +50,7 @@ setup(
         "console_scripts": [
             "lcpr_demo = lcpr_ros.demo:main",
             "lcpr_keyframe_demo = lcpr_core.demo:main",
+            "lcpr_quantize = lcpr_core.runtime.quantize:main",
             "lcpr_node = lcpr_ros.node:main",
             "lcpr_replay = lcpr_ros.replay:main",
             "lcpr_eval = lcpr_ros.evaluate:main",

@@ -43,6 +43,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--runs", type=int, default=5)
     parser.add_argument("--load", type=int, default=os.cpu_count() or 1, help="busy processes beside the tests")
+    parser.add_argument("--out", type=Path, default=REPO / "out" / "suite_under_load", help="each run's full output")
     parser.add_argument("pytest_args", nargs="*", help="extra pytest arguments (after --)")
     args = parser.parse_args(argv)
 
@@ -63,6 +64,8 @@ def main(argv: list[str] | None = None) -> int:
             done = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *extra,
                                    *args.pytest_args], cwd=REPO, capture_output=True, text=True)
             minutes = (time.monotonic() - start) / 60
+            args.out.mkdir(parents=True, exist_ok=True)
+            (args.out / f"run{run}.txt").write_text(f"{order}\n{done.stdout}\n{done.stderr}")
             tail = done.stdout.strip().splitlines()[-1] if done.stdout.strip() else done.stderr[-300:]
             failed = re.findall(r"^(?:FAILED|ERROR) (\S+)", done.stdout, re.M)
             results.append((run, order, done.returncode, minutes, tail, failed))

@@ -223,6 +223,11 @@ class OutputListener:
             del self.out.diagnostics[: -self._keep]
             self._cond.notify_all()
 
+    def clear(self) -> None:
+        """Forget everything heard so far (a new node under test)."""
+        with self._cond:
+            self.out = Outputs()
+
     def wait_for_publishers(self, timeout: float = 20.0) -> None:
         deadline = time.monotonic() + timeout
         topics = [f"{self.target}/loop_closure", f"{self.target}/candidates"]

@@ -105,6 +105,7 @@ def export_onnx(model: LCPR, path: str | os.PathLike[str]) -> Path:
                               output_names=["descriptor"], opset_version=OPSET, dynamo=False,
                               dynamic_axes={"images": {0: "batch"}, "ranges": {0: "batch"},
                                             "descriptor": {0: "batch"}})
+        os.chmod(tmp, 0o644)
         os.replace(tmp, path)
     except Exception as err:
         raise RuntimeSetupError(f"exporting LCPR to ONNX at {str(path)!r} failed: {err}") from err
