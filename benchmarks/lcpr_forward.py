@@ -1,6 +1,7 @@
 """LCPR forward pass on the CPU: median time per frame, FLOPs, GFLOP/s, bf16 agreement.
 
     python benchmarks/lcpr_forward.py [--threads 2] [--repeats 10] [--batch 1]
+    python benchmarks/lcpr_forward.py --paths [--weights FILE]   # every inference path, CPU named
 
 Times ``LCPR().eval()`` called as ``model(images, ranges)`` under
 ``torch.inference_mode()`` (fp32), and again inside ``torch.autocast("cpu",
@@ -11,6 +12,9 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
+import os
+import statistics
 import sys
 from pathlib import Path
 
@@ -43,14 +47,73 @@ def matmul_peak(dtype: torch.dtype, n: int = 2048) -> float:
     return 2 * n**3 / median_seconds(lambda: a @ b, repeats=5) / 1e9
 
 
+CPU_FLAGS = ("avx2", "avx512f", "avx512_vnni", "avx512_bf16", "avx512_fp16", "amx_bf16", "amx_int8")
+
+
+def cpu_flags() -> str:
+    try:
+        flags = next(line for line in open("/proc/cpuinfo") if line.startswith("flags")).split()
+    except (OSError, StopIteration):
+        return "unknown"
+    return " ".join(f for f in CPU_FLAGS if f in flags) or "none of " + " ".join(CPU_FLAGS)
+
+
+def paths(args: argparse.Namespace) -> None:
+    """Every inference path of lcpr_core.runtime, interleaved, on the released configuration."""
+    from lcpr_core import Describer, ModelConfig
+    from lcpr_core.runtime import cpu_model
+    from lcpr_core.runtime.choose import cosine
+    from lcpr_core.runtime.quantize import calibration_inputs, quantize
+
+    base = ModelConfig(weights=args.weights or "", threads=args.threads)
+    fp32 = Describer(dataclasses.replace(base, precision="fp32"))
+    model = fp32.model
+    describers = {"torch fp32": fp32, "torch bf16": Describer(dataclasses.replace(base, precision="bf16"), model=model),
+                  "onnx fp32": Describer(dataclasses.replace(base, precision="onnx"), model=model)}
+    calibration = calibration_inputs(fp32, seed=1, frames=args.calibration_frames)
+    quantize(fp32, calibration)
+    describers["onnx int8"] = Describer(dataclasses.replace(base, precision="int8"), model=model)
+    auto = Describer(dataclasses.replace(base, precision="auto"), model=model)
+    images, ranges = inputs(model, args.batch)
+    frames = calibration_inputs(fp32, seed=3, frames=args.cosine_frames)  # a validation city: not calibrated on
+    expected = [fp32.describe_tensors(*x) for x in frames]
+    times: dict[str, list[float]] = {name: [] for name in describers}
+    for _ in range(args.rounds):  # interleaved: a slow minute of the machine hits every path alike
+        for name, d in describers.items():
+            times[name].append(median_seconds(lambda d=d: d.describe_tensors(images, ranges), repeats=args.repeats))
+    ref = statistics.median(times["torch fp32"])
+    source = args.weights or "seeded weights"
+    print(f"LCPR inference paths, {source}, {model.num_cameras} x {model.image_size[0]} x {model.image_size[1]} "
+          f"images, {model.range_size[0]} x {model.range_size[1]} range image, width {model.width}, batch "
+          f"{args.batch}, {args.threads} threads")
+    print(f"CPU: {cpu_model()}, {os.cpu_count()} cores; flags: {cpu_flags()}")
+    print(f"median over {args.rounds} interleaved rounds of the median of {args.repeats}; cosine to torch fp32: "
+          f"lowest over {len(frames)} synthetic frames of seed 3 (int8 calibrated on seed 1)")
+    print(f"{'path':<12} {'ms/frame':>9} {'vs torch fp32':>14} {'cosine':>10}")
+    for name, d in describers.items():
+        ms = statistics.median(times[name]) / args.batch * 1e3
+        cos = min(cosine(d.describe_tensors(*x), e) for x, e in zip(frames, expected))
+        print(f"{name:<12} {ms:>9.1f} {ref / statistics.median(times[name]):>13.2f}x {cos:>10.7f}")
+    print(f"auto chose: {auto.path} ({auto.choice.summary() or 'memo of this process'})")
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--batch", type=int, default=1)
     parser.add_argument("--skip-baseline", action="store_true")
+    parser.add_argument("--paths", action="store_true",
+                        help="compare the inference paths (torch fp32/bf16, ONNX Runtime fp32/int8, auto) instead")
+    parser.add_argument("--weights", default=None, help="--paths: a weights file (default: seeded released size)")
+    parser.add_argument("--rounds", type=int, default=5, help="--paths: interleaved rounds")
+    parser.add_argument("--calibration-frames", type=int, default=32, help="--paths: int8 calibration frames")
+    parser.add_argument("--cosine-frames", type=int, default=8, help="--paths: frames for the cosine column")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
+    if args.paths:
+        paths(args)
+        return
     torch.manual_seed(0)
     model = LCPR().eval()
     images, ranges = inputs(model, args.batch)

@@ -361,6 +361,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     g.add_argument("--precision", choices=PRECISIONS, default="auto",
                    help="inference path, as the node's model.precision (default auto: the fastest exact one here)")
     g.add_argument("--threads", type=int, default=0, help="torch threads (default: torch's choice)")
+    g.add_argument("--device", default=None,
+                   help="torch device, e.g. cuda:0 (default cpu, or the parameter file's model.device)")
     g.add_argument("--image-size", type=int, nargs=2, metavar=("H", "W"), default=None,
                    help="camera input size, multiples of 32 (default 256 704, the released model's)")
     g.add_argument("--lidar", choices=sorted(PRESETS), default=None,
@@ -401,7 +403,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     g.add_argument("--params-file", type=Path, default=None,
                    help="a node parameter file (e.g. config/lcpr.yaml): model, keyframing, matching, verification, "
                         "sync slop and topics as lcpr_node would run them; --weights, --imagenet, --seed, "
-                        "--threads and --odom-topic still apply, the flags of those settings may not be given")
+                        "--threads, --device and --odom-topic still apply, the flags of those settings may not be given")
     return p.parse_args(argv)
 
 
@@ -424,7 +426,7 @@ def options_from_params_file(args: argparse.Namespace) -> EvalOptions:
     base = TOPIC_PRESETS[args.topics]
     topics = dataclasses.replace(base, cameras=tuple(node.camera_topics), camera_info=(), depth=(), labels=(),
                                  lidar=node.lidar_topic, odom=args.odom_topic or node.odom_topic or base.odom)
-    overrides = {k: getattr(args, k) for k in ("weights", "imagenet", "threads") if getattr(args, k)}
+    overrides = {k: getattr(args, k) for k in ("weights", "imagenet", "threads", "device") if getattr(args, k)}
     if args.seed:
         overrides["seed"] = args.seed
     return EvalOptions(
@@ -461,6 +463,7 @@ def options_from_args(args: argparse.Namespace) -> EvalOptions:
         weights=args.weights, imagenet=args.imagenet, seed=args.seed, num_cameras=len(topics.cameras),
         image_size=tuple(args.image_size) if args.image_size else ModelConfig().image_size,
         lidar=args.lidar or LIDAR_FOR_TOPICS[args.topics], precision=args.precision, threads=args.threads,
+        device=args.device or "cpu",
     )
     return EvalOptions(
         topics=topics, model=model,

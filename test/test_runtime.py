@@ -96,3 +96,26 @@ def test_int8_without_its_graph_is_refused_naming_the_command_that_makes_it(tmp_
 def test_an_unknown_precision_names_the_accepted_ones() -> None:
     with pytest.raises(ValueError, match="accepted: fp32, bf16, onnx, int8, auto"):
         ModelConfig(precision="fp16")
+
+
+def test_lcpr_quantize_writes_the_int8_graph_the_int8_path_then_loads(tmp_path: Path, capsys) -> None:
+    from lcpr_core.runtime.quantize import main as lcpr_quantize
+
+    weights = narrow_weights(tmp_path, seed=3)
+    assert lcpr_quantize(["--weights", str(weights), "--frames", "3", "--no-progress", "--threads", "2"]) == 0
+    config = ModelConfig(weights=str(weights), precision="int8", **NARROW)
+    assert onnx_path(config, "int8").parent == tmp_path and "int8 graph" in capsys.readouterr().out
+    describer = Describer(config)
+    assert describer.path == "int8"
+    images, ranges = probe_inputs(describer.model)
+    with torch.inference_mode():
+        expected = describer.model(images, ranges).numpy()
+    assert 0.95 <= cosine(describer.describe_tensors(images, ranges), expected) < 1.0 - 1e-9  # close, not exact
+
+
+def test_lcpr_quantize_refuses_to_calibrate_on_the_held_out_test_city(tmp_path: Path, capsys) -> None:
+    from lcpr_core.runtime.quantize import main as lcpr_quantize
+
+    weights = narrow_weights(tmp_path, seed=3)
+    assert lcpr_quantize(["--weights", str(weights), "--calibration-seed", "7", "--no-progress"]) == 1
+    assert "held-out test city" in capsys.readouterr().err
