@@ -34,6 +34,7 @@ class Health:
     sync_pending: int = 0
     worker_waiting: int = 0
     worker_busy: bool = False
+    inference: str = ""  # the inference path in use (model.precision, or what auto chose)
 
 
 def _kv(key: str, value: object) -> KeyValue:
@@ -84,6 +85,7 @@ class DiagnosticsBuilder:
             _kv("map size", h.map_size),
             _kv("session keyframes", h.session_keyframes),
             _kv("loops", h.loops),
+            *([_kv("inference path", h.inference)] if h.inference else []),
             *[_kv(f"latency {p} (ms)", v) for p, v in zip(("p50", "p90", "p99"), lat)],
             *[_kv(f"model {p} (ms)", v) for p, v in zip(("p50", "p90", "p99"), model)],
             *[_kv(f"verify {p} (ms)", v) for p, v in zip(("p50", "p90", "p99"), _ms(h.verify_time))],

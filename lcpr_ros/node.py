@@ -285,6 +285,7 @@ class LcprNode(Node):
             map_size=len(self.detector.map), session_keyframes=self.detector.session_keyframes, loops=self.loops,
             verification=self.verdicts.snapshot(), verify_time=self.verify_time.percentiles(50, 90, 99),
             sync_pending=self.sync.pending, worker_waiting=self.worker.waiting, worker_busy=self.worker.busy,
+            inference=self.detector.describer.path,
         )
 
     def _publish_diagnostics(self) -> None:

@@ -333,3 +333,4 @@ def test_a_verified_loop_carries_its_relative_pose_and_covariance_on_candidates(
     cov = np.array([rows[0][f"cov_{i}"] for i in range(36)]).reshape(6, 6)
     assert np.allclose(cov, cov.T) and (np.linalg.eigvalsh(cov) > 0).all()
     assert wait_until(lambda: int(ros.listener.latest_values("detector").get("candidates verified", 0)) >= 1, 10)
+    assert ros.listener.latest_values("detector")["inference path"] in ("fp32", "bf16", "onnx")  # what auto chose
