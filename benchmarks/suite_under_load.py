@@ -6,6 +6,7 @@ for the whole time; run 1 is reversed (pytest-reverse), the others random (pytes
 a new seed each, printed so a failure can be replayed with ``pytest --randomly-seed=...``).
 
     .venv/bin/python benchmarks/suite_under_load.py --runs 5
+    .venv/bin/python benchmarks/suite_under_load.py --alone test/test_ros_node.py ...   # each test by itself
 """
 from __future__ import annotations
 
@@ -39,13 +40,34 @@ def cpu_model() -> str:
     return platform.processor() or "unknown CPU"
 
 
+def each_alone(files: list[Path]) -> int:
+    """``pytest FILE::TEST`` for every test of ``files``, one process each: no test leans on another."""
+    listed = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:randomly",
+                             *map(str, files)], cwd=REPO, capture_output=True, text=True).stdout
+    ids = [line for line in listed.splitlines() if "::" in line]
+    failed = []
+    for test_id in ids:
+        done = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "no:randomly",
+                               test_id], cwd=REPO, capture_output=True, text=True)
+        tail = done.stdout.strip().splitlines()[-1] if done.stdout.strip() else done.stderr[-200:]
+        print(f"{'ok  ' if done.returncode == 0 else 'FAIL'} {test_id}: {tail}", flush=True)
+        if done.returncode != 0:
+            failed.append(test_id)
+    print(f"{len(ids) - len(failed)} of {len(ids)} tests passed alone")
+    return 1 if failed else 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--runs", type=int, default=5)
     parser.add_argument("--load", type=int, default=os.cpu_count() or 1, help="busy processes beside the tests")
     parser.add_argument("--out", type=Path, default=REPO / "out" / "suite_under_load", help="each run's full output")
+    parser.add_argument("--alone", nargs="+", type=Path, default=None,
+                        help="instead: run every test of these files in a pytest process of its own (no load)")
     parser.add_argument("pytest_args", nargs="*", help="extra pytest arguments (after --)")
     args = parser.parse_args(argv)
+    if args.alone:
+        return each_alone(args.alone)
 
     print(f"{cpu_model()}, {os.cpu_count()} cores; {args.load} busy processes; {args.runs} runs", flush=True)
     stop_at = time.time() + 24 * 3600
