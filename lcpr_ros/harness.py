@@ -237,9 +237,19 @@ class OutputListener:
             time.sleep(0.05)
 
     def wait(self, predicate: Callable[[Outputs], bool], timeout: float) -> bool:
-        """Block until ``predicate(outputs)`` holds (True) or the timeout passes (False)."""
+        """Block until ``predicate(outputs)`` holds (True) or the timeout passes (False).
+
+        A predicate that reads a message not yet heard (``o.candidates[-1]`` on an empty list)
+        counts as not holding yet: outputs arrive over DDS after the node decided.
+        """
+        def holds() -> bool:
+            try:
+                return bool(predicate(self.out))
+            except (IndexError, KeyError):
+                return False
+
         with self._cond:
-            return self._cond.wait_for(lambda: predicate(self.out), timeout)
+            return self._cond.wait_for(holds, timeout)
 
     def latest_values(self, status_suffix: str) -> dict[str, str]:
         """Key-values of the newest diagnostics status whose name ends with ``status_suffix``."""
