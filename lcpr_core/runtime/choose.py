@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import platform
+from functools import partial
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -105,12 +106,13 @@ def choose_backend(config: ModelConfig, model: LCPR, *, repeats: int = 3) -> Cho
     images, ranges = probe_inputs(model)
     expected = reference(images, ranges)
     if config.precision != "auto":
-        backend = _build(config.precision, config, model)
+        backend: Backend = _build(config.precision, config, model)
         if config.precision in ("onnx", "int8"):
             cos = cosine(backend(images, ranges), expected)
             floor = EXACT_COSINE if config.precision == "onnx" else INT8_COSINE
             if cos < floor:
-                raise RuntimeSetupError(f"{backend.path} gives descriptors at cosine {cos:.6f} to the torch model "  # type: ignore[attr-defined]
+                where = getattr(backend, "path", "the exported graph")
+                raise RuntimeSetupError(f"{where} gives descriptors at cosine {cos:.6f} to the torch model "
                                         f"(at least {floor} expected): delete it to export it again")
             log.info("LCPR: %s path, cosine %.7f to torch fp32 on the probe input", config.precision, cos)
         return Choice(backend)
@@ -124,7 +126,7 @@ def choose_backend(config: ModelConfig, model: LCPR, *, repeats: int = 3) -> Cho
             backend = reference if name == "fp32" else _build(name, config, model)
             out = backend(images, ranges)
             choice.cosines[name] = 1.0 if name == "fp32" else cosine(out, expected)
-            choice.ms[name] = 1000 * median_seconds(lambda b=backend: b(images, ranges), repeats=repeats, warmup=0)
+            choice.ms[name] = 1000 * median_seconds(partial(backend, images, ranges), repeats=repeats, warmup=0)
         except (RuntimeSetupError, RuntimeError) as err:
             choice.failed[name] = str(err)
             continue

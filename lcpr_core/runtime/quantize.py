@@ -1,11 +1,11 @@
 """Static int8 quantisation of the exported LCPR graph (ONNX Runtime), calibrated on synthetic drives.
 
-    lcpr_quantize [--weights FILE] [--calibration-seed 1] [--frames 48] [--ops Conv]
+    lcpr_quantize [--weights FILE] [--calibration-seed 1] [--frames 48] [--nodes REGEX] [--method minmax]
 
 The calibration frames are rendered from a synthetic drive of a *training* city (seed 1 by
 default; seed 7 is the held-out test city and is refused), preprocessed exactly as the node
 does, and fed to ONNX Runtime's static quantiser (QDQ format, per-channel int8 weights, uint8
-activations, MinMax ranges). The result is written next to the fp32 graph under the same hash
+activations, MinMax ranges) for the convolutions of ResNet layers 2-4 (:data:`DEFAULT_NODES`). The result is written next to the fp32 graph under the same hash
 (:mod:`.onnx_cache`), where ``model.precision: int8`` finds it. Its cosine to torch fp32 on the
 calibration frames is printed; what it costs in Recall@1 is measured with
 ``lcpr_eval --precision int8`` on held-out drives (README, "Inference paths").
@@ -20,6 +20,7 @@ import sys
 import tempfile
 from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import onnx
@@ -30,16 +31,21 @@ from ..errors import RuntimeSetupError
 from .choose import cosine
 from .onnx_cache import exported_graph, onnx_path
 
+if TYPE_CHECKING:
+    from ..describer import Describer
+
 log = logging.getLogger(__name__)
 
 TEST_SEEDS = (7,)  # synthetic cities reserved for held-out figures: never calibrate on them
 DEFAULT_OPS = ("Conv",)
-#: Which nodes (of DEFAULT_OPS) are quantised, by name: the ResNet blocks of both branches. The stems see raw
-#: pixels and metres (8 bits over 0-80 m is 0.3 m), the fusion and head layers are small: both stay fp32.
-DEFAULT_NODES = r"^/layer\d_[il]/"
+#: Which nodes (of DEFAULT_OPS) are quantised, by name: ResNet layers 2-4 of both branches. Chosen by the
+#: descriptors' cosine to fp32 on a validation city (seed 3; benchmarks/int8_variants.py): quantising the
+#: stems (raw pixels, metres: 8 bits over 0-80 m is 0.3 m), the fusion modules or layer 1 as well cost more.
+DEFAULT_NODES = r"^/layer[234]_[il]/"
+METHODS = {"minmax": lambda m: m.MinMax, "percentile": lambda m: m.Percentile, "entropy": lambda m: m.Entropy}
 
 
-def calibration_inputs(describer: object, *, seed: int, frames: int, image_size: tuple[int, int] = (400, 225),
+def calibration_inputs(describer: Describer, *, seed: int, frames: int, image_size: tuple[int, int] = (400, 225),
                        progress: bool = True) -> list[tuple[torch.Tensor, torch.Tensor]]:
     """``frames`` preprocessed model inputs spread along a synthetic nuScenes-rig drive of ``seed``."""
     from msg_tools.synth import SynthConfig, SyntheticDrive
@@ -54,7 +60,7 @@ def calibration_inputs(describer: object, *, seed: int, frames: int, image_size:
         frame = drive.frame(int(i))
         images = [None if c is None else (c.rgb if c.rgb is not None else c.jpeg) for c in frame.cameras]
         points = np.stack([frame.cloud[k] for k in ("x", "y", "z")], axis=1).astype(np.float32)
-        out.append(describer.inputs(images, points))  # type: ignore[attr-defined]
+        out.append(describer.inputs(images, points))
     return out
 
 
@@ -71,13 +77,14 @@ class _Reader:
         return {"images": item[0].numpy(), "ranges": item[1].numpy()}
 
 
-def quantize(describer: object, inputs: Sequence[tuple[torch.Tensor, torch.Tensor]], *,
-             ops: Sequence[str] = DEFAULT_OPS, nodes: str = DEFAULT_NODES) -> Path:
+def quantize(describer: Describer, inputs: Sequence[tuple[torch.Tensor, torch.Tensor]], *,
+             ops: Sequence[str] = DEFAULT_OPS, nodes: str = DEFAULT_NODES, method: str = "minmax") -> Path:
     """Write the int8 graph of ``describer``'s config (atomically) and return its path."""
     from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
-    config, model = describer.config, describer.model  # type: ignore[attr-defined]
+    config, model = describer.config, describer.model
+    assert model is not None
     source = exported_graph(config, model)
     target = onnx_path(config, "int8")
     target.parent.mkdir(parents=True, exist_ok=True)
@@ -91,7 +98,8 @@ def quantize(describer: object, inputs: Sequence[tuple[torch.Tensor, torch.Tenso
         quantize_static(str(prepared), str(written), _Reader(inputs), quant_format=QuantFormat.QDQ,
                         activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True,
                         op_types_to_quantize=list(ops), nodes_to_quantize=chosen,
-                        calibrate_method=CalibrationMethod.MinMax)
+                        calibrate_method=METHODS[method](CalibrationMethod),
+                        extra_options={"CalibPercentile": 99.99} if method == "percentile" else {})
         os.chmod(written, 0o644)
         os.replace(written, target)
     return target
@@ -105,7 +113,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=48, help="calibration frames")
     p.add_argument("--ops", nargs="+", default=list(DEFAULT_OPS), help="operator types to quantise (default Conv)")
     p.add_argument("--nodes", default=DEFAULT_NODES,
-                   help=f"regular expression: names of the nodes to quantise (default {DEFAULT_NODES!r}, the ResNet blocks)")
+                   help=f"regular expression: names of the nodes to quantise (default {DEFAULT_NODES!r}: ResNet layers 2-4; "
+                        "'.' = every convolution, faster and less exact)")
+    p.add_argument("--method", choices=sorted(METHODS), default="minmax", help="activation ranges (default minmax)")
     p.add_argument("--threads", type=int, default=0)
     p.add_argument("--no-progress", action="store_true")
     return p
@@ -128,7 +138,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         describer = Describer(ModelConfig(weights=str(weights), precision="fp32", threads=args.threads))
         inputs = calibration_inputs(describer, seed=args.calibration_seed, frames=args.frames,
                                     progress=not args.no_progress)
-        target = quantize(describer, inputs, ops=args.ops, nodes=args.nodes)
+        target = quantize(describer, inputs, ops=args.ops, nodes=args.nodes, method=args.method)
         int8 = Describer(ModelConfig(weights=str(weights), precision="int8", threads=args.threads),
                          model=describer.model)
     except RuntimeSetupError as err:
