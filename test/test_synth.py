@@ -150,7 +150,7 @@ def test_camera_depth_and_labels_match_the_geometry() -> None:
     objects = world.objects_near(0.0, 0.0, 150.0, stamp=0.0)
     r = render_camera(objects, world.ground, cam, pose @ cam.base_T_cam, lighting(seed=0, session=0, night=False),
                       np.random.default_rng(0), vehicle_yaw=0.0, noise=False)
-    fx, cx, cy = cam.K[0, 0], cam.K[0, 2], cam.K[1, 2]
+    fx, cy = cam.K[0, 0], cam.K[1, 2]
     wall = r.labels == Label.BUILDING
     np.testing.assert_allclose(r.depth[wall], 19.5 - 0.27, atol=1e-3)  # optical-axis depth to the face
     v = int(np.ceil(cy)) + 20  # a row below the horizon and below the wall's foot: the road
