@@ -4,9 +4,9 @@
     python benchmarks/int8_variants.py --weights "" --cosine-frames 0   # seeded released size: ms only
 
 Each variant is calibrated on a synthetic training city (seed 1) and compared with torch fp32
-on frames of a validation city (seed 3): the lowest, 10th-percentile and median cosine. The
-default of ``lcpr_quantize`` (lcpr_core.runtime.quantize.DEFAULT_NODES) was chosen from this
-table's cosines; held-out drives are only used afterwards (benchmarks/precision_cost.py).
+on frames of a validation city (seed 3): the lowest, 10th-percentile and median cosine. Recall@1
+on the validation city (benchmarks/precision_cost.py on a seed-3 drive) chose the default of
+``lcpr_quantize`` (lcpr_core.runtime.quantize.DEFAULT_NODES); see README "Inference paths".
 """
 from __future__ import annotations
 
@@ -24,10 +24,10 @@ from lcpr_core.runtime.quantize import calibration_inputs, quantize
 from lcpr_core.timing import median_seconds
 
 VARIANTS = {
-    "every convolution": r".",
+    "every convolution (default)": r".",
     "ResNet blocks + stems": r"^/(conv1_i|conv_l|layer\d_[il])/",
     "ResNet blocks": r"^/layer\d_[il]/",
-    "ResNet layers 2-4 (default)": r"^/layer[234]_[il]/",
+    "ResNet layers 2-4": r"^/layer[234]_[il]/",
     "image ResNet layers 2-4": r"^/layer[234]_i/",
 }
 
