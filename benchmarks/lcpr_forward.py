@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from baseline_lcpr import baseline_forward  # noqa: E402
 
 from lcpr_core import LCPR  # noqa: E402
-from lcpr_core.timing import median_seconds  # noqa: E402
+from lcpr_core.timing import cpu_flags, cpu_model, median_seconds  # noqa: E402
 
 
 def inputs(model: LCPR, batch: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -47,21 +47,9 @@ def matmul_peak(dtype: torch.dtype, n: int = 2048) -> float:
     return 2 * n**3 / median_seconds(lambda: a @ b, repeats=5) / 1e9
 
 
-CPU_FLAGS = ("avx2", "avx512f", "avx512_vnni", "avx512_bf16", "avx512_fp16", "amx_bf16", "amx_int8")
-
-
-def cpu_flags() -> str:
-    try:
-        flags = next(line for line in open("/proc/cpuinfo") if line.startswith("flags")).split()
-    except (OSError, StopIteration):
-        return "unknown"
-    return " ".join(f for f in CPU_FLAGS if f in flags) or "none of " + " ".join(CPU_FLAGS)
-
-
 def paths(args: argparse.Namespace) -> None:
     """Every inference path of lcpr_core.runtime, interleaved, on the released configuration."""
     from lcpr_core import Describer, ModelConfig
-    from lcpr_core.runtime import cpu_model
     from lcpr_core.runtime.choose import cosine
     from lcpr_core.runtime.quantize import calibration_inputs, quantize
 

@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import multiprocessing as mp
 import os
-import platform
 import random
 import re
 import subprocess
@@ -22,22 +21,15 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from lcpr_core.timing import cpu_model  # noqa: E402
 
 
 def _spin(stop_at: float) -> None:
     x = 0
     while time.time() < stop_at:
         x = (x * 1103515245 + 12345) & 0xFFFFFFFF
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
 
 
 def each_alone(files: list[Path]) -> int:

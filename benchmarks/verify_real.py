@@ -33,8 +33,13 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from lcpr_core.posegraph import relative_pose_error, rotation_angle_deg, rotation_error_deg
+from lcpr_core.posegraph import (
+    relative_pose_error,
+    rotation_angle_deg,
+    rotation_error_deg,
+)
 from lcpr_core.scan_context import ScanContextConfig, _all_shifts, scan_context
+from lcpr_core.timing import cpu_model
 from lcpr_core.verification import GeometricVerifier, PreparedCloud, VerifierConfig
 from msg_tools.convert.scan_folder import ScanFolder
 from msg_tools.ground_truth import revisit_pairs
@@ -191,16 +196,6 @@ def main(argv: list[str] | None = None) -> int:
     np.savez(args.out / "pairs.npz", **results)
     (args.out / "summary.json").write_text(json.dumps(summary, indent=2))
     return 0
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return "unknown CPU"
 
 
 if __name__ == "__main__":

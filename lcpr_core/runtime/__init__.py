@@ -6,8 +6,9 @@ candidates once on this machine (:mod:`.choose`). Exported graphs are cached nex
 under a hash of everything that shapes them (:mod:`.onnx_cache`); int8 graphs are made offline by
 ``lcpr_quantize`` (:mod:`.quantize`).
 """
+from ..timing import cpu_model
 from .backends import Backend, OrtBackend, TorchBackend
-from .choose import EXACT_COSINE, Choice, choose_backend, cpu_model
+from .choose import EXACT_COSINE, Choice, choose_backend
 from .onnx_cache import export_onnx, graph_key, onnx_path
 
 __all__ = ["Backend", "TorchBackend", "OrtBackend", "choose_backend", "Choice", "EXACT_COSINE", "cpu_model",

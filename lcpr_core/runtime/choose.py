@@ -10,17 +10,15 @@ An explicit ``onnx`` or ``int8`` is checked against torch fp32 on the probe befo
 from __future__ import annotations
 
 import logging
-import platform
-from functools import partial
 from dataclasses import dataclass, field
-from pathlib import Path
+from functools import partial
 from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from ..errors import RuntimeSetupError
-from ..timing import median_seconds
+from ..timing import cpu_model, median_seconds
 from .backends import Backend, OrtBackend, TorchBackend
 from .onnx_cache import exported_graph, graph_key, onnx_path
 
@@ -34,17 +32,6 @@ EXACT_COSINE = 0.99999  # what "exact" means for auto and for an exported graph
 INT8_COSINE = 0.99  # an int8 graph further than this from fp32 on the probe is refused as broken
 AUTO_CANDIDATES = ("fp32", "bf16", "onnx")
 _chosen: dict[tuple[str, str, int], str] = {}  # (graph key, device, threads) -> what auto chose in this process
-
-
-def cpu_model() -> str:
-    """The CPU's marketing name (from /proc/cpuinfo on Linux)."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine() or "unknown CPU"
 
 
 def probe_inputs(model: LCPR, batch: int = 1) -> tuple[torch.Tensor, torch.Tensor]:

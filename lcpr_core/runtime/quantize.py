@@ -82,7 +82,12 @@ class _Reader:
 def quantize(describer: Describer, inputs: Sequence[tuple[torch.Tensor, torch.Tensor]], *,
              ops: Sequence[str] = DEFAULT_OPS, nodes: str = DEFAULT_NODES, method: str = "minmax") -> Path:
     """Write the int8 graph of ``describer``'s config (atomically) and return its path."""
-    from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
+    from onnxruntime.quantization import (
+        CalibrationMethod,
+        QuantFormat,
+        QuantType,
+        quantize_static,
+    )
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
     config, model = describer.config, describer.model
