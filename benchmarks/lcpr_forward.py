@@ -16,6 +16,7 @@ import dataclasses
 import os
 import statistics
 import sys
+import time
 from pathlib import Path
 
 import torch
@@ -61,7 +62,9 @@ def paths(args: argparse.Namespace) -> None:
     calibration = calibration_inputs(fp32, seed=1, frames=args.calibration_frames)
     quantize(fp32, calibration)
     describers["onnx int8"] = Describer(dataclasses.replace(base, precision="int8"), model=model)
+    started = time.perf_counter()
     auto = Describer(dataclasses.replace(base, precision="auto"), model=model)
+    auto_s = time.perf_counter() - started
     images, ranges = inputs(model, args.batch)
     frames = calibration_inputs(fp32, seed=3, frames=args.cosine_frames)  # a validation city: not calibrated on
     expected = [fp32.describe_tensors(*x) for x in frames]
@@ -82,7 +85,7 @@ def paths(args: argparse.Namespace) -> None:
         ms = statistics.median(times[name]) / args.batch * 1e3
         cos = min(cosine(d.describe_tensors(*x), e) for x, e in zip(frames, expected))
         print(f"{name:<12} {ms:>9.1f} {ref / statistics.median(times[name]):>13.2f}x {cos:>10.7f}")
-    print(f"auto chose: {auto.path} ({auto.choice.summary() or 'memo of this process'})")
+    print(f"auto chose: {auto.path} in {auto_s:.1f} s ({auto.choice.summary() or 'memo of this process'})")
 
 
 def main(argv: list[str] | None = None) -> None:
