@@ -74,6 +74,7 @@ def start_node(args: argparse.Namespace, domain: int, prefix: str, log: Path) ->
         "-p", f"model.range_size:=[{args.range_size[0]},{args.range_size[1]}]",
         "-p", f"model.width:={float(args.width)!r}",  # a double parameter needs a decimal point
         *(["-p", f"model.weights:={args.weights}"] if args.weights else []),
+        "-p", f"model.precision:={args.precision}",
         "-p", f"camera_topics:=[{','.join(f'{prefix}/CAM_{k}/image/compressed' for k in range(6))}]",
         "-p", f"lidar_topic:={prefix}/LIDAR_TOP/points",
         "-p", "match.max_distance:=2.0",  # every keyframe older than 30 s is a candidate: one reply per frame
@@ -114,6 +115,7 @@ def main() -> int:
                         help="model.range_size (default 8 256; 0 0 = the preset's, released: 32 x 1056)")
     parser.add_argument("--width", type=float, default=0.25, help="model.width (default 0.25; released: 1.0)")
     parser.add_argument("--weights", default="", help="model.weights (default: seeded random weights)")
+    parser.add_argument("--precision", default="fp32", help="model.precision: fp32 (default), bf16, onnx, int8, auto")
     parser.add_argument("--camera-size", type=int, nargs=2, default=(48, 128), metavar=("H", "W"),
                         help="size of the published JPEG camera images (nuScenes: 900 1600)")
     parser.add_argument("--json", type=Path, help="also write the results here")
@@ -216,7 +218,8 @@ def main() -> int:
             "map_size": int(detector.get("map size", "0")), "drops": drops,
             "sync_pending": detector.get("sync pending"), "worker_waiting": detector.get("worker waiting"),
             "image_size": list(args.image_size), "lidar": args.lidar, "range_size": list(args.range_size),
-            "width": args.width, "series": series, "rss_growth_mb": growth, "rss_growth_allowed_mb": allowed,
+            "width": args.width, "precision": args.precision, "inference_path": detector.get("inference path"),
+            "series": series, "rss_growth_mb": growth, "rss_growth_allowed_mb": allowed,
         }
         print(f"\nlcpr node soak: {args.frames} frames ({args.frames * FRAME_DT:.0f} s of 2 Hz header time) "
               f"in {wall:.0f} s wall (rate {args.rate}); model {args.image_size[0]}x{args.image_size[1]} "
@@ -224,7 +227,8 @@ def main() -> int:
         print(f"  replies (~/candidates)     {len(listener.out.candidates)} for {args.frames} frames "
               f"(frames in the first 30 s have no eligible match)")
         print(f"  frame-to-candidate latency {ms(latencies)}")
-        print(f"  model time (node)          p50 {model[0]:7.1f}  p90 {model[1]:7.1f}  p99 {model[2]:7.1f} ms")
+        print(f"  model time (node)          p50 {model[0]:7.1f}  p90 {model[1]:7.1f}  p99 {model[2]:7.1f} ms "
+              f"(model.precision {args.precision}: {detector.get('inference path', '?')})")
         print("  node RSS                   " + "  ".join(f"{k} {v:.0f} MB" for k, v in rss.items())
               + f"  (map itself: at most {map_mb:.1f} MB)")
         print(f"  drops                      {drops or 'none'}; sync pending {detector.get('sync pending')}, "

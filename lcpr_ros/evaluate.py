@@ -358,8 +358,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     g.add_argument("--weights", default="", help="LCPR checkpoint or state dict (default: seeded random init)")
     g.add_argument("--imagenet", default="", help="torchvision resnet18 state dict, used without --weights")
     g.add_argument("--seed", type=int, default=0, help="random initialisation seed (default 0)")
-    g.add_argument("--precision", choices=PRECISIONS, default="auto",
-                   help="inference path, as the node's model.precision (default auto: the fastest exact one here)")
+    g.add_argument("--precision", choices=PRECISIONS, default="fp32",
+                   help="inference path, as the node's model.precision (default fp32; auto: the fastest exact one here)")
     g.add_argument("--threads", type=int, default=0, help="torch threads (default: torch's choice)")
     g.add_argument("--device", default=None,
                    help="torch device, e.g. cuda:0 (default cpu, or the parameter file's model.device)")
@@ -410,7 +410,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 #: Flags whose settings a --params-file gives (dest, default): giving both would leave it unclear which ran.
 _FILE_SETTINGS = (("image_size", None), ("lidar", None), ("camera_topics", None), ("lidar_topic", None),
                   ("slop", 0.05), ("max_distance", 1.0), ("exclude_recent", 30.0), ("keyframe_interval", 0.5),
-                  ("keyframe_distance", 0.0), ("precision", "auto"))
+                  ("keyframe_distance", 0.0), ("precision", "fp32"))
 
 
 def options_from_params_file(args: argparse.Namespace) -> EvalOptions:

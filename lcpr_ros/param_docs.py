@@ -59,8 +59,8 @@ DOCS: dict[str, ParamDoc] = {
     "model.lidar_geometry.min_xy": ParamDoc("m, half size of the ego box left out (model.lidar custom)"),
     "model.range_size": ParamDoc("[height, width] of the range image, multiples of 8; [0, 0] = the preset's"),
     "model.width": ParamDoc("channel multiplier of the network (1.0 = released; must match the weights)", 0.0, 4.0),
-    "model.precision": ParamDoc("inference path: auto (the fastest exact one on this machine, measured at start), "
-                                "fp32 / bf16 (torch), onnx (ONNX Runtime, exact), int8 (needs lcpr_quantize)",
+    "model.precision": ParamDoc("inference path: fp32 / bf16 (torch), onnx (ONNX Runtime, exact), int8 (needs "
+                                "lcpr_quantize), auto (the fastest exact one on this machine, measured at start)",
                                 choices=PRECISIONS),
     "model.device": ParamDoc("torch device, e.g. cpu or cuda:0"),
     "model.threads": ParamDoc("torch intra-op threads; 0 = torch's default", 0, 1024),
