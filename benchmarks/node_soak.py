@@ -75,6 +75,7 @@ def start_node(args: argparse.Namespace, domain: int, prefix: str, log: Path) ->
         "-p", f"model.width:={float(args.width)!r}",  # a double parameter needs a decimal point
         *(["-p", f"model.weights:={args.weights}"] if args.weights else []),
         "-p", f"model.precision:={args.precision}",
+        *[arg for param in args.param for arg in ("-p", param)],
         "-p", f"camera_topics:=[{','.join(f'{prefix}/CAM_{k}/image/compressed' for k in range(6))}]",
         "-p", f"lidar_topic:={prefix}/LIDAR_TOP/points",
         "-p", "match.max_distance:=2.0",  # every keyframe older than 30 s is a candidate: one reply per frame
@@ -115,6 +116,8 @@ def main() -> int:
                         help="model.range_size (default 8 256; 0 0 = the preset's, released: 32 x 1056)")
     parser.add_argument("--width", type=float, default=0.25, help="model.width (default 0.25; released: 1.0)")
     parser.add_argument("--weights", default="", help="model.weights (default: seeded random weights)")
+    parser.add_argument("--param", action="append", default=[], metavar="NAME:=VALUE",
+                        help="another node parameter, e.g. verify.enabled:=false (repeatable)")
     parser.add_argument("--precision", default="fp32", help="model.precision: fp32 (default), bf16, onnx, int8, auto")
     parser.add_argument("--camera-size", type=int, nargs=2, default=(48, 128), metavar=("H", "W"),
                         help="size of the published JPEG camera images (nuScenes: 900 1600)")
