@@ -27,15 +27,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from baseline_lcpr import baseline_forward  # noqa: E402
 
 from lcpr_core import LCPR  # noqa: E402
+from lcpr_core.runtime.choose import probe_inputs  # noqa: E402
 from lcpr_core.timing import cpu_flags, cpu_model, median_seconds  # noqa: E402
-
-
-def inputs(model: LCPR, batch: int) -> tuple[torch.Tensor, torch.Tensor]:
-    gen = torch.Generator().manual_seed(0)
-    images, ranges = model.example_inputs(batch)
-    images = torch.randn(images.shape, generator=gen).clamp_(-3, 3)
-    ranges = 2 + 78 * torch.rand(ranges.shape, generator=gen)
-    return images, ranges.masked_fill_(torch.rand(ranges.shape, generator=gen) < 0.1, -1.0)
 
 
 def bf16() -> contextlib.AbstractContextManager:
@@ -65,7 +58,7 @@ def paths(args: argparse.Namespace) -> None:
     started = time.perf_counter()
     auto = Describer(dataclasses.replace(base, precision="auto"), model=model)
     auto_s = time.perf_counter() - started
-    images, ranges = inputs(model, args.batch)
+    images, ranges = probe_inputs(model, args.batch)
     frames = calibration_inputs(fp32, seed=3, frames=args.cosine_frames)  # a validation city: not calibrated on
     expected = [fp32.describe_tensors(*x) for x in frames]
     times: dict[str, list[float]] = {name: [] for name in describers}
@@ -107,7 +100,7 @@ def main(argv: list[str] | None = None) -> None:
         return
     torch.manual_seed(0)
     model = LCPR().eval()
-    images, ranges = inputs(model, args.batch)
+    images, ranges = probe_inputs(model, args.batch)
     b = args.batch
 
     with torch.inference_mode():

@@ -68,4 +68,3 @@ class SensorSubscription:
         self._node.destroy_subscription(self.subscription)
         self.subscription = self._node.create_subscription(self._type, self._topic, self._callback,
                                                            qos_profile_sensor_data)
-

@@ -216,13 +216,13 @@ class Vseq2pcNode(Node):
             self._reject(InputRejected(err.reason, f"{topic}: {err.detail}"))
             return
         before = self.pairs.unpaired
-        newest = self.pairs.orders[kind].last
         refused, pair = self.pairs.offer(kind, ns, image)
         if refused is not None:
             self._reject(InputRejected(f"{kind}: {refused}", f"{topic} stamp {ns / NS_PER_S:.9f}"))
             return
-        if self.pairs.jumped and newest is not None:  # depth and labels each jump: frames between them none
-            self._time_jumped(kind, ns, newest)
+        jumped_from = self.pairs.orders[kind].jumped_from
+        if jumped_from is not None:  # depth and labels each jump: frames between them none
+            self._time_jumped(kind, ns, jumped_from)
             self.camera_sessions += 1
             self.camera_queue.forget_after(ns)
             self._camera_filter.reset()

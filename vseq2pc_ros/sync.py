@@ -34,15 +34,16 @@ class ImagePairs:
         jump_back_ns = round(jump_back * NS_PER_S)
         self.orders = {"depth": StampOrder(jump_back_ns), "labels": StampOrder(jump_back_ns)}
         self.unpaired = 0  # images given up without a partner
-        self.jumped = False  # the last offered image started a new timeline (see StampOrder)
 
     def offer(self, kind: str, stamp_ns: int, image: Any) -> tuple[str | None, tuple[int, Any, Any] | None]:
-        """(refusal reason or None, (stamp_ns, depth, labels) when a pair completed or None)."""
+        """(refusal reason or None, (stamp_ns, depth, labels) when a pair completed or None).
+
+        ``orders[kind].jumped_from`` then says whether this image started a new timeline (see StampOrder).
+        """
         refused = self.orders[kind].check(stamp_ns)
-        self.jumped = refused is None and self.orders[kind].jumped_from is not None
         if refused is not None:
             return refused, None
-        if self.jumped:  # images buffered after this stamp belong to the old timeline: they never pair
+        if self.orders[kind].jumped_from is not None:  # buffered after this stamp: the old timeline, never pairs
             for buffer in self._buffers.values():
                 kept = [item for item in buffer if item[0] <= stamp_ns + self.slop_ns]
                 self.unpaired += len(buffer) - len(kept)

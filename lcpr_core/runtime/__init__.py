@@ -1,6 +1,6 @@
 """Inference paths for LCPR behind one call: torch fp32 / bf16, ONNX Runtime fp32 and int8.
 
-:func:`make_backend` turns a :class:`~lcpr_core.describer.ModelConfig`'s ``precision`` into a
+:func:`choose_backend` turns a :class:`~lcpr_core.describer.ModelConfig`'s ``precision`` into a
 callable ``(images, ranges) -> B x 256`` (see :mod:`.backends`); ``"auto"`` measures the exact
 candidates once on this machine (:mod:`.choose`). Exported graphs are cached next to the weights
 under a hash of everything that shapes them (:mod:`.onnx_cache`); int8 graphs are made offline by

@@ -90,18 +90,19 @@ def choose_backend(config: ModelConfig, model: LCPR, *, repeats: int = 3) -> Cho
     reference = TorchBackend(model, device=config.device)
     if config.precision == "auto" and torch.device(config.device).type != "cpu":
         return Choice(reference)
+    if config.precision not in ("auto", "onnx", "int8"):  # torch itself: nothing to check, no probe pass
+        return Choice(_build(config.precision, config, model))
     images, ranges = probe_inputs(model)
     expected = reference(images, ranges)
     if config.precision != "auto":
         backend: Backend = _build(config.precision, config, model)
-        if config.precision in ("onnx", "int8"):
-            cos = cosine(backend(images, ranges), expected)
-            floor = EXACT_COSINE if config.precision == "onnx" else INT8_COSINE
-            if cos < floor:
-                where = getattr(backend, "path", "the exported graph")
-                raise RuntimeSetupError(f"{where} gives descriptors at cosine {cos:.6f} to the torch model "
-                                        f"(at least {floor} expected): delete it to export it again")
-            log.info("LCPR: %s path, cosine %.7f to torch fp32 on the probe input", config.precision, cos)
+        cos = cosine(backend(images, ranges), expected)
+        floor = EXACT_COSINE if config.precision == "onnx" else INT8_COSINE
+        if cos < floor:
+            where = getattr(backend, "path", "the exported graph")
+            raise RuntimeSetupError(f"{where} gives descriptors at cosine {cos:.6f} to the torch model "
+                                    f"(at least {floor} expected): delete it to export it again")
+        log.info("LCPR: %s path, cosine %.7f to torch fp32 on the probe input", config.precision, cos)
         return Choice(backend)
     memo = (graph_key(config), config.device, torch.get_num_threads())
     if memo in _chosen:  # measured once per process: a second detector or node takes the same path

@@ -5,8 +5,8 @@
 The calibration frames are rendered from a synthetic drive of a *training* city (seed 1 by
 default; seed 7 is the held-out test city and is refused), preprocessed exactly as the node
 does, and fed to ONNX Runtime's static quantiser (QDQ format, per-channel int8 weights, uint8
-activations, MinMax ranges) for every convolution (:data:`DEFAULT_NODES`). The result is written next to the fp32 graph under the same hash
-(:mod:`.onnx_cache`), where ``model.precision: int8`` finds it. Its cosine to torch fp32 on the
+activations, MinMax ranges) for every convolution (:data:`DEFAULT_NODES`). The result is
+written next to the fp32 graph under the same hash (:mod:`.onnx_cache`), where ``model.precision: int8`` finds it. Its cosine to torch fp32 on the
 calibration frames is printed; what it costs in Recall@1 is measured with
 ``lcpr_eval --precision int8`` on held-out drives (README, "Inference paths").
 """
