@@ -11,7 +11,9 @@ setup(
     description="Learned loop-closure detection (LCPR, VSeq2PC) for ROS 2 SLAM stacks",
     license="MIT",
     python_requires=">=3.10",
-    packages=find_packages(include=["lcpr_core", "lcpr_core.*", "lcpr_ros", "lcpr_ros.*", "msg_tools", "msg_tools.*", "vseq2pc_ros", "vseq2pc_ros.*"]),
+    packages=find_packages(
+        include=["lcpr_core*", "lcpr_ros*", "msg_tools*", "vseq2pc_ros*"]
+    ),
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
@@ -35,14 +37,26 @@ setup(
         "onnx>=1.15",  # int8 quantisation (onnxruntime.quantization) reads and writes graphs with it
     ],
     extras_require={
-        # ROS 2 from PyPI for machines without a ROS installation; a vehicle with
-        # ROS 2 Jazzy from apt uses its system rclpy instead.
-        "ros": ["ros-rclpy", "ros-common-interfaces", "ros-std-srvs", "ros-rmw-fastrtps-cpp"],
+        # ROS 2 Jazzy (the LTS the design names) from PyPI for machines without a ROS installation:
+        # pinned meta-packages (rclpy 7.1.6 with Fast DDS). A vehicle with a sourced system ROS 2
+        # uses its own rclpy instead (scripts/setup.sh).
+        "ros": ["ros-jazzy-rclpy[fastrtps]==7.1.6", "ros-jazzy-common-interfaces==5.3.6", "ros-jazzy-std-srvs==5.3.6"],
         # The pose-graph proof in lcpr_eval and the demo (optional: verification itself does not need it).
         "posegraph": ["gtsam>=4.2"],
         # The registration comparison in benchmarks/registration_compare.py.
         "compare": ["kiss-icp>=1.0"],
-        "test": ["pytest>=7", "hypothesis>=6", "pytest-randomly>=3.15", "pytest-reverse>=1.7"],
+        # Tests, and the linter and type checker CI runs before them (pinned: a new release may
+        # add rules, and CI should not turn red on a clone nobody changed).
+        "test": [
+            "pytest>=7",
+            "hypothesis>=6",
+            "pytest-randomly>=3.15",
+            "pytest-reverse>=1.7",
+            "ruff==0.17.6",
+            "mypy==2.4.1",
+            "types-PyYAML",
+            "types-tqdm",
+        ],
     },
     zip_safe=True,
     tests_require=["pytest"],

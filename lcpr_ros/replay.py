@@ -60,6 +60,8 @@ LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability
 SHM_SEGMENT_BYTES = 16 * 1024 * 1024
 #: Set by a user who configures Fast DDS; the replay then leaves its transports alone.
 FASTDDS_VARIABLES = ("FASTDDS_DEFAULT_PROFILES_FILE", "FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_BUILTIN_TRANSPORTS")
+#: Where Fast DDS looks for a profiles file: 3.x (Kilted) reads the first, 2.x (Jazzy, Humble) the second.
+PROFILE_VARIABLES = ("FASTDDS_DEFAULT_PROFILES_FILE", "FASTRTPS_DEFAULT_PROFILES_FILE")
 FASTDDS_PROFILE = """<?xml version="1.0" encoding="UTF-8"?>
 <!-- lcpr_replay: Fast DDS's default transports (shared memory + UDPv4), with a larger shared-memory segment -->
 <profiles xmlns="http://www.eprosima.com">
@@ -130,11 +132,13 @@ def shared_memory_profile(
     with tempfile.TemporaryDirectory(prefix="lcpr_replay_") as folder:
         path = Path(folder) / "fastdds_profile.xml"
         path.write_text(FASTDDS_PROFILE.format(segment_bytes=int(segment_bytes)))
-        environ["FASTDDS_DEFAULT_PROFILES_FILE"] = str(path)
+        for name in PROFILE_VARIABLES:
+            environ[name] = str(path)
         try:
             yield path
         finally:
-            environ.pop("FASTDDS_DEFAULT_PROFILES_FILE", None)
+            for name in PROFILE_VARIABLES:
+                environ.pop(name, None)
 
 
 def replay(

@@ -11,7 +11,7 @@ if "$PYTHON" -c "import rclpy" 2>/dev/null; then
   venv_flags=(--system-site-packages)
   extras="test,posegraph"
 else
-  echo "setup: no system ROS 2 found; installing the ROS 2 wheels from PyPI into .venv"
+  echo "setup: no system ROS 2 found; installing the ROS 2 Jazzy wheels from PyPI into .venv"
   venv_flags=()
   extras="ros,test,posegraph"
 fi
@@ -29,6 +29,14 @@ fi
 
 [ -x .venv/bin/python ] || "$PYTHON" -m venv "${venv_flags[@]}" .venv
 pip=(.venv/bin/python -m pip install --quiet --disable-pip-version-check)
+# A .venv made before the ros extra named Jazzy holds Kilted's wheels (ros-rclpy 9.x, no
+# ros-jazzy-rclpy): remove every ros-* wheel so that no Kilted library is left beside Jazzy's.
+if [[ ",${extras}," == *",ros,"* ]] && .venv/bin/python -m pip show -q ros-rclpy >/dev/null 2>&1 \
+    && ! .venv/bin/python -m pip show -q ros-jazzy-rclpy >/dev/null 2>&1; then
+  echo "setup: replacing the ROS 2 wheels of an earlier setup (not Jazzy's) with Jazzy's"
+  .venv/bin/python -m pip freeze --disable-pip-version-check | sed -n 's/^\(ros-[A-Za-z0-9_.-]*\)==.*/\1/p' \
+    | xargs -r .venv/bin/python -m pip uninstall -y -q --disable-pip-version-check
+fi
 # torch first and pinned: an unpinned torch pulls several GB of CUDA packages.
 "${pip[@]}" "torch==2.13.0"
 "${pip[@]}" -e ".[${extras}]"

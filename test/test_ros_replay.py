@@ -9,6 +9,7 @@ import time
 from collections.abc import Iterator
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -60,7 +61,7 @@ def rig_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
     with BagWriter(path) as writer:
         for i, stamp in enumerate(RIG_STAMPS):
             place = synthetic_place(i)
-            for topic, jpeg in zip(RIG, place.jpegs):
+            for topic, jpeg in zip(RIG, place.jpegs, strict=True):
                 writer.write(topic, compressed_from_bytes(jpeg, frame_id="cam", stamp=stamp))
             cloud = xyz_cloud(rng.uniform(-50, 50, (100_000, 3)))
             writer.write(RIG_LIDAR, array_to_pointcloud2(cloud, frame_id="lidar", stamp=stamp))
@@ -94,7 +95,7 @@ class Received:
         return True
 
 
-def stamp_of(msg: object) -> Stamp:
+def stamp_of(msg: Any) -> Stamp:
     return Stamp(msg.header.stamp.sec, msg.header.stamp.nanosec)
 
 
@@ -187,10 +188,13 @@ def test_images_published_just_before_a_large_cloud_arrive_with_it(ros: tuple[Co
 def test_the_replay_keeps_a_users_own_fast_dds_settings_and_restores_the_environment() -> None:
     environ: dict[str, str] = {}
     with shared_memory_profile(4096, environ=environ) as path:
-        assert path is not None and environ["FASTDDS_DEFAULT_PROFILES_FILE"] == str(path)
+        # Fast DDS 3.x (Kilted) reads the first variable, 2.x (Jazzy) the second: both point at the profile.
+        assert path is not None
+        assert environ["FASTDDS_DEFAULT_PROFILES_FILE"] == environ["FASTRTPS_DEFAULT_PROFILES_FILE"] == str(path)
         assert "<segment_size>4096</segment_size>" in path.read_text()
     assert environ == {} and not path.exists()
-    for own in ({"FASTDDS_DEFAULT_PROFILES_FILE": "/etc/mine.xml"}, {"FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"},
+    for own in ({"FASTDDS_DEFAULT_PROFILES_FILE": "/etc/mine.xml"}, {"FASTRTPS_DEFAULT_PROFILES_FILE": "/etc/mine.xml"},
+                {"FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"},
                 {"RMW_IMPLEMENTATION": "rmw_cyclonedds_cpp"}):
         environ = dict(own)
         with shared_memory_profile(environ=environ) as path:
