@@ -64,7 +64,10 @@ MAP_BYTES_PER_KEYFRAME = 256 * 4 + 8 + 8 + 16 * 8 + 2 + 6 * 3072 + 16
 
 def rss_mb(pid: int) -> float:
     text = Path(f"/proc/{pid}/status").read_text()
-    return int(re.search(r"VmRSS:\s+(\d+) kB", text).group(1)) / 1024
+    found = re.search(r"VmRSS:\s+(\d+) kB", text)
+    if found is None:
+        raise RuntimeError(f"no VmRSS line in /proc/{pid}/status")
+    return int(found.group(1)) / 1024
 
 
 def start_node(args: argparse.Namespace, domain: int, prefix: str, log: Path) -> subprocess.Popen[bytes]:
@@ -118,7 +121,8 @@ def main() -> int:
     parser.add_argument("--weights", default="", help="model.weights (default: seeded random weights)")
     parser.add_argument("--param", action="append", default=[], metavar="NAME:=VALUE",
                         help="another node parameter, e.g. verify.enabled:=false (repeatable)")
-    parser.add_argument("--precision", default="fp32", help="model.precision: fp32 (default), bf16, onnx, int8, auto")
+    parser.add_argument("--precision", default="auto",
+                        help="model.precision: auto (default, as the node), fp32, bf16, onnx, int8")
     parser.add_argument("--camera-size", type=int, nargs=2, default=(48, 128), metavar=("H", "W"),
                         help="size of the published JPEG camera images (nuScenes: 900 1600)")
     parser.add_argument("--json", type=Path, help="also write the results here")
@@ -161,7 +165,7 @@ def main() -> int:
         series: list[dict[str, float]] = []
         next_sample, seen_replies = start, 0
         warm_rss: float | None = None
-        warm_map = 0
+        warm_map = 0.0
         for i in range(args.frames):
             stamp_ms = round((T0 + i * FRAME_DT) * 1000)
             if args.rate > 0:
@@ -171,12 +175,12 @@ def main() -> int:
             sent[stamp_ms] = time.monotonic()
             pub.publish(places[i % args.places], stamp_ms / 1000)
             if args.rate == 0:
-                wait_until(lambda: processed(listener) >= i + 1, 30)
+                wait_until(lambda: processed(listener) >= i + 1, 30)  # noqa: B023 (called at once)
             now = time.monotonic()
             if now >= next_sample:
                 next_sample += args.sample
                 detector = listener.latest_values("detector")
-                replies = list(zip(listener.out.candidates, listener.out.received))[seen_replies:]
+                replies = list(zip(listener.out.candidates, listener.out.received, strict=True))[seen_replies:]
                 seen_replies += len(replies)
                 recent = [received - sent[round(rows[0]["query_stamp"] * 1000)] for rows, received in replies
                           if round(rows[0]["query_stamp"] * 1000) in sent]
@@ -186,7 +190,8 @@ def main() -> int:
                                "map_size": int(detector.get("map size", "0")), "latency_p50_ms": p50,
                                "latency_p99_ms": p99, "sync_pending": float(detector.get("sync pending", "nan")),
                                "worker_waiting": float(detector.get("worker waiting", "nan"))})
-                if warm_rss is None and now - start >= min(args.warmup, args.frames * FRAME_DT / max(args.rate, 1e-9) / 4):
+                warm_after = min(args.warmup, args.frames * FRAME_DT / max(args.rate, 1e-9) / 4)
+                if warm_rss is None and now - start >= warm_after:
                     warm_rss, warm_map = series[-1]["rss_mb"], series[-1]["map_size"]
                     rss["warm"] = warm_rss
                     snapshots["warm"] = listener.latest_values("inputs")
@@ -203,7 +208,7 @@ def main() -> int:
         rss["end"] = rss_mb(node_proc.pid)
 
         latencies = [received - sent[round(rows[0]["query_stamp"] * 1000)]
-                     for rows, received in zip(listener.out.candidates, listener.out.received)
+                     for rows, received in zip(listener.out.candidates, listener.out.received, strict=True)
                      if round(rows[0]["query_stamp"] * 1000) in sent]
         detector = listener.latest_values("detector")
         inputs = listener.latest_values("inputs")

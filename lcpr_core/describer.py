@@ -42,7 +42,7 @@ class ModelConfig:
     lidar_geometry: LidarGeometry = field(default_factory=LidarGeometry)
     range_size: tuple[int, int] = (0, 0)  # range image (height, width) replacing the preset's; (0, 0) = the preset's
     width: float = 1.0  # channel multiplier (1.0 = released network; trained narrow models: 0.25-0.5)
-    precision: str = "fp32"  # fp32 | bf16 (autocast) | onnx | int8 | auto (see PRECISIONS)
+    precision: str = "auto"  # auto | fp32 | bf16 (autocast) | onnx | int8 (see PRECISIONS)
     device: str = "cpu"
     threads: int = 0  # torch intra-op threads; 0 = leave torch's default
     fast_decode: bool = False  # JPEG draft-mode decoding of compressed images

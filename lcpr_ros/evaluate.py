@@ -267,8 +267,8 @@ def _ranked(
     """Candidate lists -> (N, k) keyframe rows (-1 = none) and distances (inf = none)."""
     out_ids = np.full((len(ids), k), -1, np.int64)
     out_d = np.full((len(ids), k), np.inf)
-    for r, (row_ids, row_d) in enumerate(zip(ids, dist)):
-        for c, (i, d) in enumerate(zip(row_ids[:k], row_d[:k])):
+    for r, (row_ids, row_d) in enumerate(zip(ids, dist, strict=True)):
+        for c, (i, d) in enumerate(zip(row_ids[:k], row_d[:k], strict=True)):
             out_ids[r, c], out_d[r, c] = row_of[i], d
     return out_ids, out_d
 
@@ -358,8 +358,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     g.add_argument("--weights", default="", help="LCPR checkpoint or state dict (default: seeded random init)")
     g.add_argument("--imagenet", default="", help="torchvision resnet18 state dict, used without --weights")
     g.add_argument("--seed", type=int, default=0, help="random initialisation seed (default 0)")
-    g.add_argument("--precision", choices=PRECISIONS, default="fp32",
-                   help="inference path, as the node's model.precision (default fp32; auto: the fastest exact one here)")
+    g.add_argument("--precision", choices=PRECISIONS, default="auto",
+                   help="inference path, as the node's model.precision (default auto: the fastest exact one here)")
     g.add_argument("--threads", type=int, default=0, help="torch threads (default: torch's choice)")
     g.add_argument("--device", default=None,
                    help="torch device, e.g. cuda:0 (default cpu, or the parameter file's model.device)")
@@ -403,14 +403,15 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     g.add_argument("--params-file", type=Path, default=None,
                    help="a node parameter file (e.g. config/lcpr.yaml): model, keyframing, matching, verification, "
                         "sync slop and topics as lcpr_node would run them; --weights, --imagenet, --seed, "
-                        "--threads, --device and --odom-topic still apply, the flags of those settings may not be given")
+                        "--threads, --device and --odom-topic still apply, "
+                        "the flags of those settings may not be given")
     return p.parse_args(argv)
 
 
 #: Flags whose settings a --params-file gives (dest, default): giving both would leave it unclear which ran.
 _FILE_SETTINGS = (("image_size", None), ("lidar", None), ("camera_topics", None), ("lidar_topic", None),
                   ("slop", 0.05), ("max_distance", 1.0), ("exclude_recent", 30.0), ("keyframe_interval", 0.5),
-                  ("keyframe_distance", 0.0), ("precision", "fp32"))
+                  ("keyframe_distance", 0.0), ("precision", "auto"))
 
 
 def options_from_params_file(args: argparse.Namespace) -> EvalOptions:

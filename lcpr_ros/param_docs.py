@@ -54,13 +54,14 @@ DOCS: dict[str, ParamDoc] = {
                             "columns from model.range_size)", choices=(*sorted(PRESETS), CUSTOM)),
     "model.lidar_geometry.fov_up_deg": ParamDoc("deg, top of the vertical field of view (model.lidar custom)"),
     "model.lidar_geometry.fov_down_deg": ParamDoc("deg, bottom of the vertical field of view (model.lidar custom)"),
-    "model.lidar_geometry.yaw_offset_deg": ParamDoc("deg about z that turns the cloud's x forward (model.lidar custom)"),
+    "model.lidar_geometry.yaw_offset_deg": ParamDoc("deg about z that turns the cloud's x forward "
+                                                    "(model.lidar custom)"),
     "model.lidar_geometry.max_range": ParamDoc("m, farther points are left out (model.lidar custom)"),
     "model.lidar_geometry.min_xy": ParamDoc("m, half size of the ego box left out (model.lidar custom)"),
     "model.range_size": ParamDoc("[height, width] of the range image, multiples of 8; [0, 0] = the preset's"),
     "model.width": ParamDoc("channel multiplier of the network (1.0 = released; must match the weights)", 0.0, 4.0),
-    "model.precision": ParamDoc("inference path: fp32 / bf16 (torch), onnx (ONNX Runtime, exact), int8 (needs "
-                                "lcpr_quantize), auto (the fastest exact one on this machine, measured at start)",
+    "model.precision": ParamDoc("inference path: auto (the fastest exact one on this machine, measured at start), "
+                                "fp32 / bf16 (torch), onnx (ONNX Runtime, exact), int8 (needs lcpr_quantize)",
                                 choices=PRECISIONS),
     "model.device": ParamDoc("torch device, e.g. cpu or cuda:0"),
     "model.threads": ParamDoc("torch intra-op threads; 0 = torch's default", 0, 1024),

@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -15,7 +16,7 @@ from lcpr_core.preprocess.files import find_nuscenes_keyframe
 from lcpr_core.runtime import EXACT_COSINE, graph_key, onnx_path
 from lcpr_core.runtime.choose import cosine, probe_inputs
 
-NARROW = dict(width=0.25, image_size=(64, 192), range_size=(16, 264), threads=2)
+NARROW: dict[str, Any] = dict(width=0.25, image_size=(64, 192), range_size=(16, 264), threads=2)
 
 
 def narrow_weights(folder: Path, seed: int = 0) -> Path:
@@ -60,6 +61,7 @@ def test_a_changed_checkpoint_gets_a_graph_of_its_own(tmp_path: Path) -> None:
     first.write_bytes(narrow_weights(tmp_path, seed=1).read_bytes())  # same name, new weights
     assert graph_key(config) != key and not onnx_path(config).is_file()
     describer = Describer(config)  # exports again: its descriptors are the new weights'
+    assert describer.model is not None
     images, ranges = probe_inputs(describer.model)
     with torch.inference_mode():
         expected = describer.model(images, ranges).numpy()
@@ -107,6 +109,7 @@ def test_lcpr_quantize_writes_the_int8_graph_the_int8_path_then_loads(tmp_path: 
     assert onnx_path(config, "int8").parent == tmp_path and "int8 graph" in capsys.readouterr().out
     describer = Describer(config)
     assert describer.path == "int8"
+    assert describer.model is not None
     images, ranges = probe_inputs(describer.model)
     with torch.inference_mode():
         expected = describer.model(images, ranges).numpy()
@@ -119,3 +122,26 @@ def test_lcpr_quantize_refuses_to_calibrate_on_the_held_out_test_city(tmp_path: 
     weights = narrow_weights(tmp_path, seed=3)
     assert lcpr_quantize(["--weights", str(weights), "--calibration-seed", "7", "--no-progress"]) == 1
     assert "held-out test city" in capsys.readouterr().err
+
+
+def test_the_heap_threshold_is_fixed_once_per_process_and_a_users_own_setting_is_kept(monkeypatch) -> None:
+    from lcpr_core.runtime import heap
+
+    monkeypatch.setattr(heap, "_done", None)
+    kept = heap.fix_mmap_threshold(environ={"MALLOC_MMAP_THRESHOLD_": "65536"})
+    assert kept == "left to MALLOC_MMAP_THRESHOLD_=65536"
+    assert heap.fix_mmap_threshold(environ={}) == kept  # decided once per process
+    monkeypatch.setattr(heap, "_done", None)
+    done = heap.fix_mmap_threshold(environ={})
+    assert done in (f"fixed at {heap.MMAP_THRESHOLD} bytes", "not glibc")
+    with pytest.raises(RuntimeSetupError, match="mmap threshold 0"):
+        heap.fix_mmap_threshold(0)
+
+
+def test_the_onnx_path_fixes_the_heap_threshold_when_it_starts(tmp_path: Path, monkeypatch) -> None:
+    from lcpr_core.runtime import heap
+
+    monkeypatch.setattr(heap, "_done", None)
+    monkeypatch.delenv("MALLOC_MMAP_THRESHOLD_", raising=False)
+    Describer(ModelConfig(weights=str(narrow_weights(tmp_path)), precision="onnx", **NARROW))
+    assert heap._done in (f"fixed at {heap.MMAP_THRESHOLD} bytes", "not glibc")

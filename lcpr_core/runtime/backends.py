@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from ..errors import RuntimeSetupError
+from .heap import fix_mmap_threshold
 
 if TYPE_CHECKING:
     from ..models import LCPR
@@ -44,6 +45,7 @@ class OrtBackend:
         except ImportError as err:
             raise RuntimeSetupError(f"model.precision={name!r} needs onnxruntime (pip install onnxruntime); "
                                     "accepted without it: fp32, bf16") from err
+        fix_mmap_threshold()  # once per process: see .heap
         options = ort.SessionOptions()
         options.intra_op_num_threads = threads  # 0 = one per core
         options.inter_op_num_threads = 1
