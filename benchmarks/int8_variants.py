@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import statistics
+from functools import partial
 
 import numpy as np
 
@@ -24,9 +25,11 @@ from lcpr_core.runtime.quantize import calibration_inputs, quantize
 from lcpr_core.timing import median_seconds
 
 VARIANTS = {
-    "every convolution (default)": r".",
+    "every convolution": r".",
+    "ResNet blocks + image stem": r"^/(conv1_i|layer\d_[il])/",
     "ResNet blocks + stems": r"^/(conv1_i|conv_l|layer\d_[il])/",
     "ResNet blocks": r"^/layer\d_[il]/",
+    "image ResNet + image stem": r"^/(conv1_i|layer\d_i)/",
     "ResNet layers 2-4": r"^/layer[234]_[il]/",
     "image ResNet layers 2-4": r"^/layer[234]_i/",
 }
@@ -54,15 +57,15 @@ def main(argv: list[str] | None = None) -> None:
           f"images, width {fp32.config.width}), {args.threads} threads, {cpu_model()}")
     print(f"{'variant':<30} {'ms/frame':>9} {'min cos':>8} {'p10 cos':>8} {'median':>9}")
     for name, d in reference.items():
-        ms = statistics.median(median_seconds(lambda d=d: d.describe_tensors(images, ranges), repeats=args.repeats)
+        ms = statistics.median(median_seconds(partial(d.describe_tensors, images, ranges), repeats=args.repeats)
                                for _ in range(args.rounds))
         print(f"{name:<30} {1000 * ms:>9.1f}")
     for name, pattern in VARIANTS.items():
         quantize(fp32, calibration, nodes=pattern)
         q = Describer(dataclasses.replace(base, precision="int8"), model=fp32.model)
-        ms = statistics.median(median_seconds(lambda: q.describe_tensors(images, ranges), repeats=args.repeats)
+        ms = statistics.median(median_seconds(partial(q.describe_tensors, images, ranges), repeats=args.repeats)
                                for _ in range(args.rounds))
-        cs = np.array([cosine(q.describe_tensors(*x), e) for x, e in zip(validation, expected)])
+        cs = np.array([cosine(q.describe_tensors(*x), e) for x, e in zip(validation, expected, strict=True)])
         cos = f"{cs.min():>8.5f} {np.quantile(cs, 0.1):>8.5f} {np.median(cs):>9.6f}" if len(cs) else ""
         print(f"{name:<30} {1000 * ms:>9.1f} {cos}", flush=True)
     quantize(fp32, calibration)  # leave the default variant in place

@@ -6,7 +6,8 @@ The calibration frames are rendered from a synthetic drive of a *training* city 
 default; seed 7 is the held-out test city and is refused), preprocessed exactly as the node
 does, and fed to ONNX Runtime's static quantiser (QDQ format, per-channel int8 weights, uint8
 activations, MinMax ranges) for every convolution (:data:`DEFAULT_NODES`). The result is
-written next to the fp32 graph under the same hash (:mod:`.onnx_cache`), where ``model.precision: int8`` finds it. Its cosine to torch fp32 on the
+written next to the fp32 graph under the same hash (:mod:`.onnx_cache`), where
+``model.precision: int8`` finds it. Its cosine to torch fp32 on the
 calibration frames is printed; what it costs in Recall@1 is measured with
 ``lcpr_eval --precision int8`` on held-out drives (README, "Inference paths").
 """
@@ -120,7 +121,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=48, help="calibration frames")
     p.add_argument("--ops", nargs="+", default=list(DEFAULT_OPS), help="operator types to quantise (default Conv)")
     p.add_argument("--nodes", default=DEFAULT_NODES,
-                   help=f"regular expression: names of the nodes to quantise (default {DEFAULT_NODES!r}: every convolution; "
+                   help=f"regular expression: names of the nodes to quantise (default {DEFAULT_NODES!r}: "
+                        "every convolution; "
                         "'^/layer\\d_[il]/' = the ResNet blocks only, slower and closer to fp32)")
     p.add_argument("--method", choices=sorted(METHODS), default="minmax", help="activation ranges (default minmax)")
     p.add_argument("--threads", type=int, default=0)
