@@ -17,6 +17,7 @@ import os
 import statistics
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -50,6 +51,7 @@ def paths(args: argparse.Namespace) -> None:
     base = ModelConfig(weights=args.weights or "", threads=args.threads)
     fp32 = Describer(dataclasses.replace(base, precision="fp32"))
     model = fp32.model
+    assert model is not None
     describers = {"torch fp32": fp32, "torch bf16": Describer(dataclasses.replace(base, precision="bf16"), model=model),
                   "onnx fp32": Describer(dataclasses.replace(base, precision="onnx"), model=model)}
     calibration = calibration_inputs(fp32, seed=1, frames=args.calibration_frames)
@@ -64,7 +66,7 @@ def paths(args: argparse.Namespace) -> None:
     times: dict[str, list[float]] = {name: [] for name in describers}
     for _ in range(args.rounds):  # interleaved: a slow minute of the machine hits every path alike
         for name, d in describers.items():
-            times[name].append(median_seconds(lambda d=d: d.describe_tensors(images, ranges), repeats=args.repeats))
+            times[name].append(median_seconds(partial(d.describe_tensors, images, ranges), repeats=args.repeats))
     ref = statistics.median(times["torch fp32"])
     source = args.weights or "seeded weights"
     print(f"LCPR inference paths, {source}, {model.num_cameras} x {model.image_size[0]} x {model.image_size[1]} "
@@ -76,7 +78,7 @@ def paths(args: argparse.Namespace) -> None:
     print(f"{'path':<12} {'ms/frame':>9} {'vs torch fp32':>14} {'cosine':>10}")
     for name, d in describers.items():
         ms = statistics.median(times[name]) / args.batch * 1e3
-        cos = min(cosine(d.describe_tensors(*x), e) for x, e in zip(frames, expected))
+        cos = min(cosine(d.describe_tensors(*x), e) for x, e in zip(frames, expected, strict=True))
         print(f"{name:<12} {ms:>9.1f} {ref / statistics.median(times[name]):>13.2f}x {cos:>10.7f}")
     print(f"auto chose: {auto.path} in {auto_s:.1f} s ({auto.choice.summary() or 'memo of this process'})")
 

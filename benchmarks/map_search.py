@@ -17,8 +17,13 @@ import gc
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from functools import partial
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:  # for annotations only: the functions import lcpr_core lazily
+    from lcpr_core.descriptor_map import DescriptorMap, MapConfig
 
 TARGET_EXACT_MS = 2.0  # 10k exact, per query
 TARGET_APPROX_MS = 5.0  # 1M approximate, per query
@@ -97,7 +102,9 @@ def trajectory_data(n: int, dim: int, queries: int, seed: int, *, noise: float =
     return db, sample(rng.integers(0, n, size=queries))
 
 
-def build(map_cls: type, config: object, db: np.ndarray, label: str) -> tuple[object, float, float]:
+def build(
+    map_cls: type[DescriptorMap], config: MapConfig, db: np.ndarray, label: str
+) -> tuple[DescriptorMap, float, float]:
     from tqdm import tqdm
 
     before = rss_mb()
@@ -123,14 +130,14 @@ def time_single(search: Callable[[np.ndarray], list], queries: np.ndarray) -> tu
     return float(np.median(ms)), float(np.percentile(ms, 90)), hits
 
 
-def time_batch(m: object, queries: np.ndarray, k: int) -> float:
+def time_batch(m: DescriptorMap, queries: np.ndarray, k: int) -> float:
     t0 = time.perf_counter()
     m.search(queries, k=k)
     return len(queries) / (time.perf_counter() - t0)
 
 
 def recall(approx: list[list[int]], exact: list[list[int]]) -> float:
-    return float(np.mean([len(set(a) & set(e)) / max(len(e), 1) for a, e in zip(approx, exact)]))
+    return float(np.mean([len(set(a) & set(e)) / max(len(e), 1) for a, e in zip(approx, exact, strict=True)]))
 
 
 def verdict(size: int, index: str, median_ms: float, rec: float | None) -> str:
@@ -152,10 +159,10 @@ def run_one(size: int, data: str, args: argparse.Namespace) -> list[Row]:
     rows: list[Row] = []
 
     flat, build_s, mem = build(DescriptorMap, MapConfig(dim=args.dim, index="flat"), db, f"{data} {size} flat")
-    med, p90, exact = time_single(lambda q: flat.search(q, k=k), queries)
+    med, p90, exact = time_single(partial(flat.search, k=k), queries)
     qps = time_batch(flat, queries, k)
     rows.append(Row(size, data, "flat", "plain", build_s, mem, med, p90, qps, 1.0, verdict(size, "flat", med, None)))
-    med, p90, exact_excl = time_single(lambda q: flat.search(q, k=k, exclude_after=cut), queries)
+    med, p90, exact_excl = time_single(partial(flat.search, k=k, exclude_after=cut), queries)
     rows.append(Row(size, data, "flat", "excl", None, None, med, p90, None, 1.0, ""))
     del flat
     gc.collect()
@@ -166,14 +173,14 @@ def run_one(size: int, data: str, args: argparse.Namespace) -> list[Row]:
     gc.collect()
     for ef in args.ef_sweep:
         hnsw.set_ef_search(ef)
-        med, p90, hits = time_single(lambda q: hnsw.search(q, k=k), queries)
+        med, p90, hits = time_single(partial(hnsw.search, k=k), queries)
         qps = time_batch(hnsw, queries, k)
         rec = recall(hits, exact)
         first = ef == args.ef_sweep[0]
         rows.append(Row(size, data, "hnsw", f"ef={ef}", build_s if first else None, mem if first else None,
                         med, p90, qps, rec, verdict(size, "hnsw", med, rec)))
     hnsw.set_ef_search(config.hnsw_ef_search)
-    med, p90, hits = time_single(lambda q: hnsw.search(q, k=k, exclude_after=cut), queries)
+    med, p90, hits = time_single(partial(hnsw.search, k=k, exclude_after=cut), queries)
     rows.append(Row(size, data, "hnsw", f"excl ef={config.hnsw_ef_search}", None, None, med, p90, None,
                     recall(hits, exact_excl), ""))
     del hnsw

@@ -65,7 +65,7 @@ def kiss_register(q_xyz: np.ndarray, m_xyz: np.ndarray, start: np.ndarray) -> np
 
 
 def compare(name: str, seq, truth_poses: np.ndarray, pairs: np.ndarray, verifier: GeometricVerifier,
-            seed: int) -> dict[str, dict[str, float]]:
+            seed: int) -> dict[str, dict[str, float | None]]:
     rng = np.random.default_rng(seed)
     prepared = PreparedScans(verifier, seq)
     rows: dict[str, list[tuple[float, float, float]]] = {"small_gicp": [], "kiss-icp": []}
@@ -73,8 +73,8 @@ def compare(name: str, seq, truth_poses: np.ndarray, pairs: np.ndarray, verifier
         Q, M = prepared[q], prepared[m]
         truth = np.linalg.inv(truth_poses[m]) @ truth_poses[q]
         start = perturb(truth, rng)
-        for lib, run in (("small_gicp", lambda: small_gicp_register(verifier, Q, M, start)),
-                         ("kiss-icp", lambda: kiss_register(Q.xyz, M.xyz, start))):
+        for lib, run in (("small_gicp", lambda Q=Q, M=M, start=start: small_gicp_register(verifier, Q, M, start)),
+                         ("kiss-icp", lambda Q=Q, M=M, start=start: kiss_register(Q.xyz, M.xyz, start))):
             tic = time.perf_counter()
             T = run()
             seconds = time.perf_counter() - tic

@@ -56,7 +56,9 @@ from lcpr_ros.harness import (  # noqa: E402
 T0 = 1_700_000_000.0
 
 
-def start_node(prefix: str, domain: int, log: Path, extra: list[str], node_env: dict[str, str]) -> subprocess.Popen[bytes]:
+def start_node(
+    prefix: str, domain: int, log: Path, extra: list[str], node_env: dict[str, str]
+) -> subprocess.Popen[bytes]:
     ros_args = [
         "-p", "model.image_size:=[32,96]", "-p", "model.lidar:=velodyne_vlp16", "-p", "model.range_size:=[8,256]",
         "-p", "model.width:=0.25", "-p", "camera_type:=raw",

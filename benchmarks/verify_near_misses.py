@@ -37,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     verifier = GeometricVerifier()
     prepared = PreparedScans(verifier, seq)
     accepted = []
-    for q, m in tqdm(list(zip(queries.tolist(), matches.tolist())), desc="pairs 9-25 m", unit="pair"):
+    for q, m in tqdm(list(zip(queries.tolist(), matches.tolist(), strict=True)), desc="pairs 9-25 m", unit="pair"):
         v = verifier.verify_prepared(prepared[q], prepared[m])
         if v.accepted:
             err = relative_pose_error(v.match_T_query, np.linalg.inv(seq.poses[m]) @ seq.poses[q])

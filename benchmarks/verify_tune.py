@@ -28,6 +28,7 @@ import dataclasses
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
@@ -40,7 +41,7 @@ from lcpr_core.verification import GeometricVerifier, VerifierConfig  # noqa: E4
 from msg_tools.convert.scan_folder import ScanFolder  # noqa: E402
 from msg_tools.ground_truth import revisit_pairs  # noqa: E402
 
-OPEN = dict(min_fitness=0.0, min_constraint=0.0, early_reject=0.0)  # chosen here; the other rules stay
+OPEN: dict[str, Any] = dict(min_fitness=0.0, min_constraint=0.0, early_reject=0.0)  # chosen here; the other rules stay
 FALSE_RATE = 0.001
 
 
@@ -75,7 +76,7 @@ def evidence(verifier: GeometricVerifier, seq, pairs: np.ndarray, desc: str) -> 
     arr = np.array(rows, np.float64).reshape(-1, 9)
     # "blocked": refused by a rule not tuned here (too few points, residual, correction bound)
     return dict(zip(("fitness", "constraint", "rmse", "corr_m", "corr_deg", "err_m", "err_deg", "blocked",
-                     "coarse_fitness"), arr.T))
+                     "coarse_fitness"), arr.T, strict=True))
 
 
 def synthetic_pairs(seq: SyntheticLidar, *, far_random: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -123,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\nchosen on validation (<= {FALSE_RATE:.1%} of {len(allf['fitness'])} false pairs accepted): "
           f"min_fitness={chosen['min_fitness']:.3f} min_constraint={chosen['min_constraint']:.2f} "
           f"early_reject={chosen['early_reject']:.1f}")
-    report = {"chosen": chosen, "sets": {}}
+    report: dict[str, Any] = {"chosen": chosen, "sets": {}}
     for name, s in {**{f"true: {k}": v for k, v in true_sets.items()},
                     **{f"false: {k}": v for k, v in false_sets.items()}}.items():
         ok = _passes(s, chosen)
@@ -136,8 +137,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  {name:40s} {json.dumps(line)}")
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "chosen.json").write_text(json.dumps(report, indent=2))
-    np.savez(args.out / "evidence.npz", **{f"{kind}/{name}/{k}": v for kind, sets in (("true", true_sets),
-             ("false", false_sets)) for name, s in sets.items() for k, v in s.items()})
+    evidence_arrays: dict[str, Any] = {  # Any: np.savez's keywords also name its own allow_pickle flag
+        f"{kind}/{name}/{k}": v for kind, sets in (("true", true_sets), ("false", false_sets))
+        for name, s in sets.items() for k, v in s.items()}
+    np.savez(args.out / "evidence.npz", **evidence_arrays)
     return 0
 
 

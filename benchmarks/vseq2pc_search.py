@@ -109,8 +109,8 @@ def main() -> None:
                 continue
             config = SearchConfig(k=10, exclude_recent_s=None, chunk_scans=args.chunk, prefilter=m)
             ms, top = timed(db, head, qs, config)
-            r1 = float(np.mean([a[0] == b[0] for a, b in zip(top, full_top)]))
-            r10 = float(np.mean([len(set(a) & set(b)) / 10 for a, b in zip(top, full_top)]))
+            r1 = float(np.mean([a[0] == b[0] for a, b in zip(top, full_top, strict=True)]))
+            r10 = float(np.mean([len(set(a) & set(b)) / 10 for a, b in zip(top, full_top, strict=True)]))
             rows.append(Row(size, f"prefilter {m}", float(np.median(ms)), float(np.percentile(ms, 90)), r1, r10))
             print(f"  prefilter {m}: median {rows[-1].median_ms:.1f} ms", flush=True)
         del db

@@ -55,8 +55,9 @@ def read_state_dict(path: str | os.PathLike[str]) -> dict[str, torch.Tensor]:
 def _find_state_dict(obj: object, path: Path) -> dict[str, torch.Tensor]:
     if isinstance(obj, Mapping):
         for key in ("net", "state_dict", "model"):
-            if isinstance(obj.get(key), Mapping):
-                obj = obj[key]
+            inner = obj.get(key)
+            if isinstance(inner, Mapping):
+                obj = inner
                 break
         if obj and all(isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in obj.items()):
             return dict(obj)

@@ -112,7 +112,7 @@ def yaw_and_degradation(
             describer.describe(rolled, rotate_z(points, -slot_deg)),
         "vehicle turned 55 deg (nuScenes camera spacing; not a pixel shift)":
             describer.describe(rolled, rotate_z(points, -55.0)),
-        "CAM_FRONT blacked out (a camera that stopped sending)": describer.describe([None] + images[1:], points),
+        "CAM_FRONT blacked out (a camera that stopped sending)": describer.describe([None, *images[1:]], points),
         "for contrast: the cloud seen from 10 m further on": describer.describe(images, moved),
     }
 

@@ -310,13 +310,15 @@ class DescriptorMap:
 
     def _index_search(self, q: np.ndarray, k: int, sel: Any) -> tuple[np.ndarray, np.ndarray]:
         if self._config.index == "hnsw":
-            params = faiss.SearchParametersHNSW(efSearch=max(self._ef_search, k))
+            # faiss 1.15's stubs omit SearchParametersHNSW (it exists at run time)
+            params = faiss.SearchParametersHNSW(efSearch=max(self._ef_search, k))  # type: ignore[attr-defined]
             if sel is not None:
                 params.sel = sel
             return self._index.search(q, k, params=params)
         if sel is None:
             return self._index.search(q, k)
-        return self._index.search(q, k, params=faiss.SearchParameters(sel=sel))
+        # faiss wraps every SearchParameters* __init__ to take fields as keywords; its stubs do not say so
+        return self._index.search(q, k, params=faiss.SearchParameters(sel=sel))  # type: ignore[call-arg]
 
     def _matches(self, dist2: np.ndarray, pos: np.ndarray, max_distance: float | None) -> list[Match]:
         keep = pos >= 0
@@ -332,7 +334,7 @@ class DescriptorMap:
         poses = self._poses.view()[pos]
         codes = self._source_codes.view()[pos].tolist()
         out = []
-        for rank, (i, d, s, p, c) in enumerate(zip(ids, dist.tolist(), stamps, poses, codes)):
+        for rank, (i, d, s, p, c) in enumerate(zip(ids, dist.tolist(), stamps, poses, codes, strict=True)):
             pose = None if np.isnan(p).all() else (float(p[0]), float(p[1]), float(p[2]))
             out.append(Match(id=i, distance=d, stamp=s, pose=pose, source=self._source_names[c], rank=rank))
         return out
@@ -357,7 +359,7 @@ class DescriptorMap:
             "sources": self._source_names,
             "clouds": len(self.clouds),
         }
-        arrays = {
+        arrays: dict[str, Any] = {  # Any: np.savez's keywords also name its own allow_pickle flag
             "header": np.array(json.dumps(header)),
             "descriptors": self._xb(),
             "ids": self._ids.view(),
@@ -416,12 +418,12 @@ class DescriptorMap:
 def _make_index(config: MapConfig) -> tuple[Any, Any]:
     """The FAISS index and the IndexFlat that stores its vectors."""
     if config.index == "hnsw":
-        index = faiss.IndexHNSWFlat(config.dim, config.hnsw_m)
-        index.hnsw.efConstruction = config.hnsw_ef_construction
-        index.hnsw.efSearch = config.hnsw_ef_search
-        return index, faiss.downcast_index(index.storage)
-    index = faiss.IndexFlatL2(config.dim)
-    return index, index
+        hnsw = faiss.IndexHNSWFlat(config.dim, config.hnsw_m)
+        hnsw.hnsw.efConstruction = config.hnsw_ef_construction
+        hnsw.hnsw.efSearch = config.hnsw_ef_search
+        return hnsw, faiss.downcast_index(hnsw.storage)
+    flat = faiss.IndexFlatL2(config.dim)
+    return flat, flat
 
 
 def _exact(q: np.ndarray, xb: np.ndarray, k: int, rows: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -529,13 +531,15 @@ def _read_npz(where: str) -> dict[str, np.ndarray]:
     except MapError:
         raise
     except Exception as err:  # noqa: BLE001 - BadZipFile, ValueError from a damaged .npy header, OSError
-        raise MapError(f"map file {where} cannot be read as a descriptor map (.npz): {type(err).__name__}: {err}") from err
+        raise MapError(f"map file {where} cannot be read as a descriptor map (.npz): "
+                       f"{type(err).__name__}: {err}") from err
     try:
         npz = np.load(where, allow_pickle=False, mmap_mode=None)
     except FileNotFoundError as err:
         raise MapError(f"map file {where} does not exist") from err
     except Exception as err:  # noqa: BLE001 - OSError, BadZipFile, ValueError (pickle), EOFError, ...
-        raise MapError(f"map file {where} cannot be read as a descriptor map (.npz): {type(err).__name__}: {err}") from err
+        raise MapError(f"map file {where} cannot be read as a descriptor map (.npz): "
+                       f"{type(err).__name__}: {err}") from err
     if not isinstance(npz, np.lib.npyio.NpzFile):
         raise MapError(f"map file {where} is not an .npz archive (found a single .npy array)")
     try:
@@ -550,7 +554,8 @@ def _read_npz(where: str) -> dict[str, np.ndarray]:
     except MapError:
         raise
     except Exception as err:  # noqa: BLE001 - zipfile/numpy raise many kinds on damaged archives
-        raise MapError(f"map file {where} cannot be read as a descriptor map (.npz): {type(err).__name__}: {err}") from err
+        raise MapError(f"map file {where} cannot be read as a descriptor map (.npz): "
+                       f"{type(err).__name__}: {err}") from err
 
 
 def _parse_header(raw: np.ndarray, where: str) -> dict[str, Any]:
@@ -573,7 +578,7 @@ def _parse_header(raw: np.ndarray, where: str) -> dict[str, Any]:
 
 
 def _config_from_header(header: dict[str, Any], where: str) -> MapConfig:
-    extra = {}
+    extra: dict[str, Any] = {}
     if header["index"] == "hnsw":
         extra = dict(hnsw_m=header.get("m"), hnsw_ef_search=header.get("ef_search"),
                      hnsw_ef_construction=header.get("ef_construction"))

@@ -29,6 +29,7 @@ import time
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 
@@ -285,7 +286,9 @@ class LoopDetector:
         eligible = len(self.map) - excluded
         if eligible <= 0:
             return []
-        hits = self.map.search(desc, k=min(cfg.top_k + excluded, len(self.map)), max_distance=cfg.max_distance)
+        # one (D,) descriptor: search returns one list of matches
+        hits = cast(list[Match], self.map.search(desc, k=min(cfg.top_k + excluded, len(self.map)),
+                                                 max_distance=cfg.max_distance))
         newest_ids = set(self.map.ids[eligible:].tolist())
         return [h for h in hits if h.id not in newest_ids][: cfg.top_k]
 

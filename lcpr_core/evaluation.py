@@ -523,7 +523,7 @@ class VerifiedLoops:
             "accepted_loops": [
                 {"query": loop.query, "match": loop.match, "fitness": float(f), "correct": bool(ok),
                  "trans_err_m": None if err is None else err[0], "yaw_err_deg": None if err is None else err[1]}
-                for loop, f, ok, err in zip(self.loops, self.fitness, self.correct, self.pose_errors)
+                for loop, f, ok, err in zip(self.loops, self.fitness, self.correct, self.pose_errors, strict=True)
             ],
             "pose_graph": None if self.pose_graph is None else self.pose_graph.to_dict(),
             "pose_graph_note": self.pose_graph_note,
@@ -556,7 +556,7 @@ def evaluate_verified(
                         radius=gt.radius)
     correct = loop_correct(loops, gt.positions, gt.radius)
     positive = gt.has_loop.copy()
-    positive[[q for q, ok in zip(queries, correct) if ok]] = True
+    positive[[q for q, ok in zip(queries, correct, strict=True) if ok]] = True
     pr = fitness_sweep(fit, correct, num_positives=int(positive.sum()), num_queries=len(gt.stamps))
     return VerifiedLoops(name=name, score=score, pr=pr, loops=loops, fitness=fit, correct=correct,
                          pose_errors=tuple(loop_pose_errors(loops, world_T_lidar)))
@@ -799,7 +799,7 @@ def plot_trajectory(gt: GroundTruth, methods: Sequence[MethodResult], path: str 
                 sel = accepted[p.top1_correct[accepted] == ok]
                 if len(sel):
                     segs = np.stack([xy[p.query_rows[sel]], xy[p.top1_rows[sel]]], axis=1)
-                    ax.add_collection(LineCollection(segs, colors=color, lw=1.2, zorder=3))
+                    ax.add_collection(LineCollection(list(segs), colors=color, lw=1.2, zorder=3))
                 ax.scatter(xy[p.query_rows[sel], 0], xy[p.query_rows[sel], 1], s=16, color=color,
                            label=f"{label} ({len(sel)})", zorder=3)
             where = " (its max-F1 threshold)" if point.source == "max F1" else ""

@@ -167,9 +167,10 @@ def score_loops(
         raise InputShapeError(f"world_T_lidar of shape {np.shape(world_T_lidar)}; expected ({len(pos)}, 4, 4)")
     correct = loop_correct(loops, pos, radius)
     errors = loop_pose_errors(loops, world_T_lidar)
-    closed = len({loop.query for loop, ok in zip(loops, correct) if ok and revisit[loop.query]})
+    closed = len({loop.query for loop, ok in zip(loops, correct, strict=True) if ok and revisit[loop.query]})
     true_revisits = int(revisit.sum())
-    measured = np.array([e for e, ok in zip(errors, correct) if ok and e is not None], np.float64).reshape(-1, 2)
+    measured = np.array([e for e, ok in zip(errors, correct, strict=True) if ok and e is not None],
+                        np.float64).reshape(-1, 2)
     stats: dict[str, float | None] = dict.fromkeys(
         ("trans_err_median", "trans_err_p95", "yaw_err_median", "yaw_err_p95"))
     if len(measured):
@@ -177,7 +178,7 @@ def score_loops(
         stats = {"trans_err_median": float(t50), "trans_err_p95": float(t95),
                  "yaw_err_median": float(y50), "yaw_err_p95": float(y95)}
     n_correct = int(correct.sum())
-    true_pose = sum(1 for e, ok in zip(errors, correct)
+    true_pose = sum(1 for e, ok in zip(errors, correct, strict=True)
                     if not ok and e is not None and e[0] <= POSE_OK_M and e[1] <= POSE_OK_DEG)
     return LoopScore(
         loops=len(loops), correct=n_correct, precision=n_correct / len(loops) if loops else None,

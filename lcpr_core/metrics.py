@@ -165,9 +165,11 @@ def _check_inputs(
     qd, dd = np.asarray(query_desc, np.float64), np.asarray(db_desc, np.float64)
     qp, dp = np.asarray(query_pos, np.float64), np.asarray(db_pos, np.float64)
     if qd.ndim != 2 or dd.ndim != 2 or qd.shape[1] != dd.shape[1]:
-        raise InputShapeError(f"descriptors of shapes query {qd.shape}, database {dd.shape}; expected (Q, D) and (M, D)")
+        raise InputShapeError(f"descriptors of shapes query {qd.shape}, database {dd.shape}; "
+                              "expected (Q, D) and (M, D)")
     if qp.ndim != 2 or dp.ndim != 2 or qp.shape[1] != dp.shape[1] or qp.shape[1] not in (2, 3):
-        raise InputShapeError(f"positions of shapes query {qp.shape}, database {dp.shape}; expected (Q, 2|3) and (M, 2|3)")
+        raise InputShapeError(f"positions of shapes query {qp.shape}, database {dp.shape}; "
+                              "expected (Q, 2|3) and (M, 2|3)")
     if len(qp) != len(qd) or len(dp) != len(dd):
         raise InputShapeError(
             f"{len(qd)} query / {len(dd)} database descriptors but {len(qp)} / {len(dp)} positions; counts must agree"

@@ -258,11 +258,11 @@ def optimize_pose_graph(
         rel = _inverse(poses[i]) @ poses[i + 1]
         graph.add(gtsam.BetweenFactorPose3(i, i + 1, pose3(rel), gaussian(covs[i], rel)))
     m_estimators = gtsam.noiseModel.mEstimator
-    kernel = {"huber": m_estimators.Huber, "cauchy": m_estimators.Cauchy}.get(config.robust)
+    make_kernel = {"huber": m_estimators.Huber.Create, "cauchy": m_estimators.Cauchy.Create}.get(config.robust)
     for loop in loops:
         noise = gaussian(loop.covariance, loop.match_T_query)
-        if kernel is not None:
-            noise = gtsam.noiseModel.Robust.Create(kernel.Create(config.robust_param), noise)
+        if make_kernel is not None:
+            noise = gtsam.noiseModel.Robust.Create(make_kernel(config.robust_param), noise)
         graph.add(gtsam.BetweenFactorPose3(loop.match, loop.query, pose3(loop.match_T_query), noise))
 
     params = gtsam.LevenbergMarquardtParams()
@@ -391,11 +391,11 @@ def plot_trajectories(
     FigureCanvasAgg(fig)  # Agg without touching pyplot's global backend
     ax = fig.add_subplot(1, 1, 1)
     ax.plot(gt[:, 0], gt[:, 1], "-", color="k", lw=2, label="ground truth")
-    for (name, xyz), color in zip(est.items(), ("tab:red", "tab:blue")):
+    for (name, xyz), color in zip(est.items(), ("tab:red", "tab:blue"), strict=False):
         ax.plot(xyz[:, 0], xyz[:, 1], "-", color=color, lw=1.3, label=f"{name}: ATE {ate_rmse(xyz, gt):.2f} m")
     if pairs:
         segs = np.stack([gt[[q for q, _ in pairs], :2], gt[[m for _, m in pairs], :2]], axis=1)  # (L, 2, 2)
-        ax.add_collection(LineCollection(segs, colors="tab:green", lw=0.6, alpha=0.7, zorder=0))
+        ax.add_collection(LineCollection(list(segs), colors="tab:green", lw=0.6, alpha=0.7, zorder=0))
         ax.plot([], [], color="tab:green", lw=0.6, label=f"loop closures ({len(pairs)})")
     if len(gt):
         ax.plot(*gt[0, :2], "k^", ms=8, label="start")

@@ -34,9 +34,8 @@ from lcpr_core.atomic import write_bytes_atomic
 from lcpr_core.errors import LcprError
 from lcpr_core.evaluation import recall_at_full_precision
 from lcpr_core.loop_report import PublishedLoop, fitness_sweep, pose_graph_proof, score_loops
+from lcpr_core.metrics import plot_pr_curve, pr_sweep
 from lcpr_core.posegraph import DriftModel
-from lcpr_core.metrics import pr_sweep
-from lcpr_core.metrics import plot_pr_curve
 from lcpr_core.pretrained import BUNDLED_MAX_DISTANCE, default_weights
 from msg_tools.frames import NUSCENES_TOPICS
 from msg_tools.ground_truth import revisit_pairs
@@ -278,7 +277,8 @@ def report(args, truth: Truth, out, detector: dict, inputs: dict, replay_s: floa
         print(f"  verified loops:     max F1 {pr_verified.max_f1:.2f} (swept over fitness), recall at precision 1.0 "
               f"{_f(recall_at_full_precision(pr_verified))}")
     if pr is not None:
-        print(f"  retrieval alone:    max F1 {pr.max_f1:.2f} (swept over top-1 distance, best at {pr.max_f1_threshold:.3f}), "
+        print(f"  retrieval alone:    max F1 {pr.max_f1:.2f} (swept over top-1 distance, "
+              f"best at {pr.max_f1_threshold:.3f}), "
               f"recall at precision 1.0 {_f(recall_at_full_precision(pr))}")
         print(f"  PR plot:            {plot}")
     summary = {

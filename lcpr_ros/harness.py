@@ -16,9 +16,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
-import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -31,8 +31,8 @@ from msg_tools.image import array_to_image
 from msg_tools.pointcloud import array_to_pointcloud2, xyz_cloud
 from msg_tools.transforms import pose_to_odometry
 
-from .qos import CANDIDATE_QOS
 from .outputs import parse_candidates
+from .qos import CANDIDATE_QOS
 
 SMALL_IMAGE = (48, 128)  # height, width of synthetic camera images
 
@@ -236,7 +236,7 @@ class OutputListener:
                 raise TimeoutError(f"no publisher on {topics} after {timeout} s")
             time.sleep(0.05)
 
-    def wait(self, predicate: Callable[[Outputs], bool], timeout: float) -> bool:
+    def wait(self, predicate: Callable[[Outputs], object], timeout: float) -> bool:
         """Block until ``predicate(outputs)`` holds (True) or the timeout passes (False).
 
         A predicate that reads a message not yet heard (``o.candidates[-1]`` on an empty list)

@@ -69,7 +69,7 @@ def save_under_lock(lock: threading.Lock, path: str, save: Callable[[str], int],
 
 
 def answer_save_request(response: Any, save: Callable[[], int], *, what: str, path: str,
-                        log: Callable[[str], None]) -> Any:
+                        log: Callable[[str], object]) -> Any:
     """Fill a std_srvs/Trigger response from ``save()``: success and "saved N <what> to <path>", or the error."""
     try:
         count = save()

@@ -28,7 +28,6 @@ from lcpr_core.detector import DetectorConfig, Frame, LoopDetector
 from lcpr_core.preprocess.camera import CameraInput
 
 from .config import NodeConfig
-from .qos import CANDIDATE_QOS, QOS_ADAPTED, SensorSubscription
 from .diagnostics import DiagnosticsBuilder, Health
 from .errors import ConfigError, InputRejected
 from .inputs import CLOUD_NAN, camera_input, cloud_points, compressed_payload, odometry_pose, raw_payload
@@ -38,6 +37,7 @@ from .outputs import candidates_msg, loop_closure_msg
 from .params import Settings, all_leaves, describe, settings_from
 from .poses import NoPoses, OdometryBuffer, PoseSource
 from .process import finish_and_save, run_node
+from .qos import CANDIDATE_QOS, QOS_ADAPTED, SensorSubscription
 from .ros_params import RuntimeParameters, declare
 from .stamps import NS_PER_S, stamp_ns
 from .stats import Counts, RateMeter, WarnOnce, Window
@@ -59,7 +59,7 @@ SHUTDOWN_TIMEOUT = 60.0  # s the worker may take to finish its frames at shutdow
 class LcprNode(Node):
     """The ``lcpr`` node. Raises ConfigError / MapLoadError when it cannot start."""
 
-    def __init__(self, *, parameter_overrides: list[Parameter[Any]] | None = None, **kwargs: Any) -> None:
+    def __init__(self, *, parameter_overrides: list[Parameter] | None = None, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, parameter_overrides=parameter_overrides, **kwargs)
         self._leaves = all_leaves()
         self.settings: Settings = settings_from(declare(self, self._leaves))

@@ -70,7 +70,7 @@ def parse_candidates(msg: Any) -> list[dict[str, float]]:
     if cols != len(names) or len(msg.data) < msg.layout.data_offset + rows * cols:
         raise ValueError(f"layout {rows} x {cols} with columns {names} does not fit {len(msg.data)} values")
     data = list(msg.data)[msg.layout.data_offset:]
-    return [dict(zip(names, data[r * cols:(r + 1) * cols])) for r in range(rows)]
+    return [dict(zip(names, data[r * cols:(r + 1) * cols], strict=True)) for r in range(rows)]
 
 
 def row_pose(row: Mapping[str, float]) -> np.ndarray | None:

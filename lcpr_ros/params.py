@@ -111,7 +111,7 @@ def build(cls: type, values: Mapping[str, Any], prefix: str = "") -> Any:
     for f in dataclasses.fields(cls):
         name = f"{prefix}{f.name}"
         hint = hints[f.name]
-        if dataclasses.is_dataclass(hint):
+        if isinstance(hint, type) and dataclasses.is_dataclass(hint):  # a nested group (hints are classes)
             kwargs[f.name] = build(hint, values, f"{name}.")
         elif name in values:
             kind, array = _field_kind(cls, f.name, hint)

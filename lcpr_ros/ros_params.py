@@ -66,7 +66,7 @@ class RuntimeParameters:
         node.add_on_set_parameters_callback(self._check)
         node.add_post_set_parameters_callback(self._changed)
 
-    def _candidate(self, changes: Sequence[Parameter[Any]]) -> Any:
+    def _candidate(self, changes: Sequence[Parameter]) -> Any:
         values = current_values(self._node, list(self._leaves.values()))
         for param in changes:
             leaf = self._leaves.get(param.name)
@@ -78,14 +78,14 @@ class RuntimeParameters:
                 raise ConfigError(f"parameter {param.name}: {param.value!r} is not a {leaf.kind.__name__}") from err
         return self._build(values)
 
-    def _check(self, changes: list[Parameter[Any]]) -> SetParametersResult:
+    def _check(self, changes: list[Parameter]) -> SetParametersResult:
         try:
             self._candidate(changes)
         except ConfigError as err:
             return SetParametersResult(successful=False, reason=str(err))
         return SetParametersResult(successful=True)
 
-    def _changed(self, changes: list[Parameter[Any]]) -> None:
+    def _changed(self, changes: list[Parameter]) -> None:
         settings = self._candidate([])
         self._apply(settings)
         names = ", ".join(f"{p.name}={p.value!r}" for p in changes)

@@ -85,7 +85,7 @@ class Window:
 class WarnOnce:
     """Logs a warning the first time each cause is seen; later ones are only counted."""
 
-    def __init__(self, warn: Callable[[str], None]) -> None:
+    def __init__(self, warn: Callable[[str], object]) -> None:
         self._warn = warn
         self._lock = threading.Lock()
         self._seen: set[str] = set()

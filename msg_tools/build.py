@@ -15,7 +15,7 @@ from __future__ import annotations
 import importlib
 import re
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, ClassVar, Protocol, TypeGuard
 
 import numpy as np
 
@@ -34,6 +34,12 @@ _NUMPY_OF_ROS = {
 _RCLPY_NESTED = re.compile(r"([A-Za-z0-9_]+)/(?:msg/)?([A-Za-z0-9_]+)")
 
 
+class _RosbagsMessage(Protocol):
+    """What :func:`_is_rosbags_class` checks a message class for."""
+
+    __msgtype__: ClassVar[str]
+
+
 def build_message(msgtype: str, values: Mapping[str, Any], *, msg_type: type | None = None) -> Any:
     """A ``msgtype`` message (``"pkg/msg/Name"``) holding ``values``; unspecified fields get defaults."""
     if msg_type is None or _is_rosbags_class(msg_type):
@@ -43,7 +49,7 @@ def build_message(msgtype: str, values: Mapping[str, Any], *, msg_type: type | N
     return _build_foreign(msg_type, values)
 
 
-def _is_rosbags_class(cls: type) -> bool:
+def _is_rosbags_class(cls: type) -> TypeGuard[type[_RosbagsMessage]]:
     return hasattr(cls, "__msgtype__") and hasattr(cls, "__dataclass_fields__")
 
 

@@ -5,9 +5,9 @@ from typing import Any
 
 import numpy as np
 
+from .build import build_message
 from .errors import CameraInfoError
 from .frames import CameraModel
-from .build import build_message
 from .types import StampLike, header_values
 
 

@@ -2,11 +2,12 @@
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .errors import GeometryError
 
 
-def quaternion_to_matrix(q_xyzw: np.ndarray) -> np.ndarray:
+def quaternion_to_matrix(q_xyzw: ArrayLike) -> np.ndarray:
     """Unit quaternion (x, y, z, w; normalised here) -> 3 x 3 rotation matrix."""
     q = np.asarray(q_xyzw, dtype=np.float64).reshape(-1)
     if q.size != 4 or not np.all(np.isfinite(q)):
@@ -57,7 +58,7 @@ def check_pose(T: np.ndarray, *, what: str = "pose", tol: float = 1e-5) -> np.nd
     return M
 
 
-def pose_from_parts(translation: np.ndarray, q_xyzw: np.ndarray) -> np.ndarray:
+def pose_from_parts(translation: ArrayLike, q_xyzw: ArrayLike) -> np.ndarray:
     """Translation (3) + quaternion (x, y, z, w) -> 4 x 4 pose."""
     T = np.eye(4)
     T[:3, :3] = quaternion_to_matrix(q_xyzw)

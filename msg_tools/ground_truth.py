@@ -17,7 +17,9 @@ from .frames import SensorFrame
 _MAX_CANDIDATES = 2_000_000  # candidate pairs expanded at once (bounds memory)
 
 
-def _check(positions: np.ndarray, stamps: np.ndarray, radius: float, min_time_gap: float) -> tuple[np.ndarray, np.ndarray]:
+def _check(
+    positions: np.ndarray, stamps: np.ndarray, radius: float, min_time_gap: float
+) -> tuple[np.ndarray, np.ndarray]:
     P = np.asarray(positions, dtype=np.float64)
     t = np.asarray(stamps, dtype=np.float64)
     if P.ndim != 2 or P.shape[1] not in (2, 3):

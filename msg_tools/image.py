@@ -217,7 +217,8 @@ def depth_to_metres(msg: Any) -> np.ndarray:
     encoding = str(msg.encoding)
     if encoding not in DEPTH_ENCODINGS:
         encoding_of(encoding)
-        raise ImageEncodingError(f"encoding {encoding!r} is not a depth encoding; accepted: {', '.join(DEPTH_ENCODINGS)}")
+        raise ImageEncodingError(f"encoding {encoding!r} is not a depth encoding; "
+                                 f"accepted: {', '.join(DEPTH_ENCODINGS)}")
     pixels = image_to_array(msg)
     if encoding == "16UC1":
         return pixels.astype(np.float32) / np.float32(1000.0)

@@ -48,12 +48,13 @@ def read_pcd(path: str | os.PathLike[str]) -> np.ndarray:
         points = int(header["POINTS"][0]) if "POINTS" in header else int(header["WIDTH"][0]) * int(header["HEIGHT"][0])
         data = header["DATA"][0].lower()
     except (KeyError, IndexError, ValueError) as err:
-        raise DatasetError(f"{where}: PCD header lacks or garbles {err}; expected FIELDS, SIZE, TYPE, POINTS, DATA") from err
+        raise DatasetError(f"{where}: PCD header lacks or garbles {err}; "
+                           "expected FIELDS, SIZE, TYPE, POINTS, DATA") from err
     if not len(fields) == len(sizes) == len(types) == len(counts):
         raise DatasetError(f"{where}: FIELDS/SIZE/TYPE/COUNT have {len(fields)}/{len(sizes)}/{len(types)}/"
                            f"{len(counts)} entries; they must agree")
     formats = []
-    for name, t, s, c in zip(fields, types, sizes, counts):
+    for name, t, s, c in zip(fields, types, sizes, counts, strict=True):
         code = _TYPES.get((t, s))
         if code is None:
             raise DatasetError(f"{where}: field {name!r} has TYPE {t} SIZE {s}; accepted: F 4/8, I or U 1/2/4/8")
@@ -66,14 +67,14 @@ def read_pcd(path: str | os.PathLike[str]) -> np.ndarray:
                                f"header; the file has {len(raw) - pos} (truncated?)")
         return np.frombuffer(raw, dtype=dtype, count=points, offset=pos).copy()
     if data == "ascii":
-        values = np.array(raw[pos:].split(), dtype=np.float64)
+        numbers = np.array(raw[pos:].split(), dtype=np.float64)
         width = sum(counts)
-        if values.size < points * width:
-            raise DatasetError(f"{where}: {values.size} values for {points} points of {width}; truncated?")
-        table = values[: points * width].reshape(points, width)
+        if numbers.size < points * width:
+            raise DatasetError(f"{where}: {numbers.size} values for {points} points of {width}; truncated?")
+        table = numbers[: points * width].reshape(points, width)
         out = np.empty(points, dtype)
         col = 0
-        for name, c in zip(fields, counts):
+        for name, c in zip(fields, counts, strict=True):
             out[name] = table[:, col] if c == 1 else table[:, col:col + c]
             col += c
         return out

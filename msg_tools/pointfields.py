@@ -1,9 +1,9 @@
 """PointField layouts <-> numpy structured dtypes (the layout half of the PointCloud2 conversion)."""
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -47,7 +47,7 @@ def fields_to_dtype(specs: Sequence[FieldSpec], *, point_step: int, is_bigendian
     :class:`PointFieldLayoutError` for a repeated or empty name, a count below 1, a
     field reaching past ``point_step`` or two fields sharing bytes.
     """
-    order = ">" if is_bigendian else "<"
+    order: Literal[">", "<"] = ">" if is_bigendian else "<"
     names: list[str] = []
     formats: list[Any] = []
     offsets: list[int] = []
@@ -74,17 +74,20 @@ def fields_to_dtype(specs: Sequence[FieldSpec], *, point_step: int, is_bigendian
         offsets.append(spec.offset)
         spans.append((spec.offset, end, spec.name))
     spans.sort()
-    for (_s0, e0, n0), (s1, _e1, n1) in zip(spans, spans[1:]):
+    for (_s0, e0, n0), (s1, _e1, n1) in zip(spans, spans[1:], strict=False):
         if s1 < e0:
-            raise PointFieldLayoutError(f"fields {n0!r} and {n1!r} overlap: {n1!r} starts at byte {s1}, {n0!r} ends at {e0}")
+            raise PointFieldLayoutError(f"fields {n0!r} and {n1!r} overlap: {n1!r} starts at byte {s1}, "
+                                        f"{n0!r} ends at {e0}")
     return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": point_step})
 
 
 def native_dtype(dtype: np.dtype) -> np.dtype:
     """The same layout (names, offsets, itemsize) with every field in native byte order."""
-    formats = []
+    formats: list[Any] = []
+    # dtype.fields is None only for an unstructured dtype, whose names are None too
+    fields: Mapping[str, tuple[Any, ...]] = dtype.fields or {}
     for name in dtype.names or ():
-        fdt = dtype.fields[name][0]
+        fdt = fields[name][0]
         if fdt.shape:
             formats.append((fdt.base.newbyteorder("="), fdt.shape))
         else:
@@ -92,7 +95,7 @@ def native_dtype(dtype: np.dtype) -> np.dtype:
     return np.dtype({
         "names": list(dtype.names or ()),
         "formats": formats,
-        "offsets": [dtype.fields[n][1] for n in dtype.names or ()],
+        "offsets": [fields[n][1] for n in dtype.names or ()],
         "itemsize": dtype.itemsize,
     })
 
@@ -101,9 +104,11 @@ def dtype_to_field_specs(dtype: np.dtype) -> list[FieldSpec]:
     """A structured dtype -> PointField specs, checking every field has a ROS datatype."""
     if dtype.names is None or not dtype.names:
         raise PointFieldLayoutError(f"a point cloud array needs a structured dtype with named fields, got {dtype}")
+    fields = dtype.fields
+    assert fields is not None  # a dtype with names has fields
     specs = []
     for name in dtype.names:
-        fdt, offset = dtype.fields[name][:2]
+        fdt, offset = fields[name][:2]
         base, shape = (fdt.base, fdt.shape) if fdt.shape else (fdt, ())
         if len(shape) > 1:
             raise PointFieldLayoutError(

@@ -13,7 +13,7 @@ import functools
 import math
 from dataclasses import dataclass
 from fractions import Fraction
-from typing import Any, Protocol, Union, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
@@ -74,7 +74,7 @@ class Stamp:
 
 
 #: What stamp arguments accept: float (or int) seconds, a :class:`Stamp`, or a Time message.
-StampLike = Union[float, int, Stamp, TimeLike]
+StampLike = float | int | Stamp | TimeLike
 
 
 def sec_to_stamp(t: float) -> Stamp:

@@ -14,7 +14,7 @@ def smooth_rgb(height: int, width: int) -> np.ndarray:
 def mosaic(rgb: np.ndarray, pattern: str) -> np.ndarray:
     """The raw frame of a Bayer sensor whose 2 x 2 cell is ``pattern`` read row by row (ROS's naming)."""
     raw = np.zeros(rgb.shape[:2], np.uint8)
-    for (i, j), colour in zip(((0, 0), (0, 1), (1, 0), (1, 1)), pattern):
+    for (i, j), colour in zip(((0, 0), (0, 1), (1, 0), (1, 1)), pattern, strict=True):
         raw[i::2, j::2] = rgb[i::2, j::2, "rgb".index(colour)]
     return raw
 

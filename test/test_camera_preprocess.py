@@ -26,7 +26,7 @@ def encoded(array: np.ndarray, fmt: str) -> bytes:
 def test_an_array_is_resized_bilinearly_and_normalised_with_imagenet_statistics():
     array = gradient_image()
     out = camera_tensor(array, size=(32, 64))
-    resized = np.asarray(Image.fromarray(array).resize((64, 32), Image.BILINEAR), dtype=np.float32) / 255
+    resized = np.asarray(Image.fromarray(array).resize((64, 32), Image.Resampling.BILINEAR), dtype=np.float32) / 255
     expected = (resized - np.array(IMAGENET_MEAN, np.float32)) / np.array(IMAGENET_STD, np.float32)
     assert out.shape == (3, 32, 64) and out.dtype == torch.float32
     np.testing.assert_allclose(out.permute(1, 2, 0).numpy(), expected, atol=1e-6)

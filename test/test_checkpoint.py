@@ -3,18 +3,19 @@ from __future__ import annotations
 
 import logging
 import pickle
+from typing import Any
 
 import pytest
 import torch
 
-from lcpr_core import CheckpointError, LCPR, ModelConfig, build_model, init_from_imagenet, load_weights
+from lcpr_core import LCPR, CheckpointError, ModelConfig, build_model, init_from_imagenet, load_weights
 from lcpr_core.checkpoint import save_checkpoint
 
-SMALL = dict(num_cameras=2, image_size=(64, 128), range_size=(16, 256))
+SMALL: dict[str, Any] = dict(num_cameras=2, image_size=(64, 128), range_size=(16, 256))
 
 
 def states_equal(a: torch.nn.Module, b: torch.nn.Module) -> bool:
-    return all(torch.equal(x, y) for x, y in zip(a.state_dict().values(), b.state_dict().values()))
+    return all(torch.equal(x, y) for x, y in zip(a.state_dict().values(), b.state_dict().values(), strict=True))
 
 
 def test_a_released_format_checkpoint_roundtrips(tmp_path):
@@ -81,6 +82,8 @@ def test_imagenet_weights_initialise_both_branches(tmp_path):
     resnet["fc.weight"] = torch.zeros(1000, 512)
     torch.save(resnet, tmp_path / "resnet18.pth")
     init_from_imagenet(model, tmp_path / "resnet18.pth")
+    assert isinstance(model.layer3_l[0].conv1, torch.nn.Conv2d)
+    assert isinstance(model.layer3_i[0].conv1, torch.nn.Conv2d)
     assert torch.all(model.layer3_l[0].conv1.weight == 0.5)
     assert torch.all(model.layer3_i[0].conv1.weight == 0.5)
     assert not torch.all(model.conv_l.weight == 0.5)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -17,12 +18,13 @@ from lcpr_core.runtime.choose import cosine, probe_inputs
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU on this machine")
 
-NARROW = dict(width=0.25, image_size=(64, 192), range_size=(16, 264))
+NARROW: dict[str, Any] = dict(width=0.25, image_size=(64, 192), range_size=(16, 264))
 
 
 def test_cuda_fp32_descriptors_agree_with_the_cpu_to_a_cosine_of_0_9999() -> None:
     cpu = Describer(ModelConfig(precision="fp32"))
     gpu = Describer(ModelConfig(precision="fp32", device="cuda"))
+    assert cpu.model is not None
     images, ranges = probe_inputs(cpu.model, batch=2)
     assert cosine(gpu.describe_tensors(images, ranges), cpu.describe_tensors(images, ranges)) >= 0.9999
 
@@ -30,6 +32,7 @@ def test_cuda_fp32_descriptors_agree_with_the_cpu_to_a_cosine_of_0_9999() -> Non
 def test_cuda_bf16_stays_close_to_the_cpu() -> None:
     cpu = Describer(ModelConfig(precision="fp32"))
     gpu = Describer(ModelConfig(precision="bf16", device="cuda"))
+    assert cpu.model is not None
     images, ranges = probe_inputs(cpu.model)
     assert cosine(gpu.describe_tensors(images, ranges), cpu.describe_tensors(images, ranges)) >= 0.999
 
@@ -56,5 +59,5 @@ def test_one_training_step_on_the_gpu_changes_the_weights(tmp_path: Path) -> Non
     loss = torch.relu((desc[0] - desc[1]).norm() - (desc[0] - desc[2]).norm() + 0.5)
     loss.backward()
     torch.optim.Adam(model.parameters(), lr=1e-3).step()
-    assert any(not torch.equal(b, p.detach()) for b, p in zip(before, model.parameters()))
+    assert any(not torch.equal(b, p.detach()) for b, p in zip(before, model.parameters(), strict=True))
     assert np.isfinite(loss.item())

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import TypeGuard
 
 import numpy as np
 import pytest
@@ -19,13 +20,25 @@ def unit(rng: np.random.Generator, n: int, dim: int = DIM) -> np.ndarray:
     return x / np.linalg.norm(x, axis=1, keepdims=True)
 
 
-def brute_force(db: np.ndarray, q: np.ndarray, k: int, allowed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def brute_force(
+    db: np.ndarray, q: np.ndarray, k: int, allowed: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     d = np.linalg.norm(db.astype(np.float64) - q.astype(np.float64), axis=1)
     if allowed is not None:
         d = np.where(allowed, d, np.inf)
     order = np.argsort(d, kind="stable")[:k]
     order = order[np.isfinite(d[order])]
     return order, d[order]
+
+
+def single(hits: list[Match] | list[list[Match]]) -> TypeGuard[list[Match]]:
+    """The result of one (D,) query: a flat list of matches."""
+    return all(isinstance(h, Match) for h in hits)
+
+
+def batched(results: list[Match] | list[list[Match]]) -> TypeGuard[list[list[Match]]]:
+    """The result of a (Q, D) batch: one list of matches per query."""
+    return all(isinstance(r, list) for r in results)
 
 
 def filled_map(n: int = 300, *, seed: int = 0, index: str = "flat") -> tuple[DescriptorMap, np.ndarray]:
@@ -52,7 +65,8 @@ def test_exact_search_matches_numpy_brute_force() -> None:
     queries = unit(np.random.default_rng(1), 25)
     results = m.search(queries, k=7)
     assert len(results) == 25
-    for q, hits in zip(queries, results):
+    assert batched(results)
+    for q, hits in zip(queries, results, strict=True):
         order, dist = brute_force(x, q, 7)
         assert [h.id for h in hits] == order.tolist()
         np.testing.assert_allclose([h.distance for h in hits], dist, atol=1e-5)
@@ -67,7 +81,8 @@ def test_a_single_query_returns_a_flat_list_of_matches_with_metadata() -> None:
     assert (top.id, top.stamp, top.source, top.rank) == (8, 4.0, "bag2", 0)
     assert top.distance == pytest.approx(0.0, abs=1e-3)
     assert top.pose == (8.0, -8.0, 0.0)
-    assert m.search(x[7], k=1)[0].pose is None  # row 7 was given a NaN pose
+    nan_pose = m.search(x[7], k=1)
+    assert single(nan_pose) and nan_pose[0].pose is None  # row 7 was given a NaN pose
 
 
 def test_k_larger_than_the_map_returns_every_entry() -> None:
@@ -79,6 +94,7 @@ def test_k_larger_than_the_map_returns_every_entry() -> None:
 def test_max_distance_drops_far_hits() -> None:
     m, x = filled_map(100)
     hits = m.search(x[0], k=10, max_distance=1.0)
+    assert single(hits)
     _, dist = brute_force(x, x[0], 10)
     assert len(hits) == int((dist <= 1.0).sum())
     assert all(h.distance <= 1.0 for h in hits)
@@ -92,6 +108,7 @@ def test_entries_newer_than_exclude_after_are_never_returned(
     m, x = filled_map(300, index=index)
     q = x[250]
     hits = m.search(q, k=10, exclude_after=60.0)  # stamps are 0.5 * row
+    assert single(hits)
     assert hits and all(h.stamp <= 60.0 for h in hits)
     order, _ = brute_force(x, q, 10, allowed=m.stamps <= 60.0)
     assert [h.id for h in hits] == order.tolist()
@@ -111,6 +128,7 @@ def test_exclusion_is_correct_when_stamps_are_not_monotonic(exact_rows: int, mon
         allowed = stamps <= 150.0
         for q in x[::40]:
             hits = m.search(q, k=5, exclude_after=150.0)
+            assert single(hits)
             order, _ = brute_force(x, q, 5, allowed=allowed)
             assert [h.id for h in hits] == order.tolist()
 
@@ -119,7 +137,8 @@ def test_each_query_of_a_batch_can_have_its_own_window() -> None:
     m, x = filled_map(200)
     windows = np.array([10.0, 50.0, 99.5])
     results = m.search(x[[150, 160, 199]], k=4, exclude_after=windows)
-    for w, hits in zip(windows, results):
+    assert batched(results)
+    for w, hits in zip(windows, results, strict=True):
         assert len(hits) == 4 and all(h.stamp <= w for h in hits)
 
 
@@ -127,6 +146,7 @@ def test_hnsw_finds_the_exact_neighbour_on_easy_data() -> None:
     m, x = filled_map(500, index="hnsw")
     noisy = x[::10] + 0.01 * unit(np.random.default_rng(5), 50)
     results = m.search(noisy, k=1)
+    assert batched(results)
     assert [r[0].id for r in results] == list(range(0, 500, 10))
 
 
@@ -141,7 +161,9 @@ def test_a_saved_map_loads_back_with_the_same_ids_and_metadata(tmp_path: Path) -
     np.testing.assert_array_equal(back.poses, m.poses)
     np.testing.assert_array_equal(back.descriptors, x)
     assert back.sources == m.sources
-    assert [h.id for h in back.search(x[3], k=5)] == [h.id for h in m.search(x[3], k=5)]
+    loaded_hits, saved_hits = back.search(x[3], k=5), m.search(x[3], k=5)
+    assert single(loaded_hits) and single(saved_hits)
+    assert [h.id for h in loaded_hits] == [h.id for h in saved_hits]
 
 
 def test_ids_continue_after_the_largest_loaded_id(tmp_path: Path) -> None:
@@ -216,7 +238,8 @@ def test_a_save_into_an_unwritable_directory_raises_map_error(tmp_path: Path) ->
 
 @pytest.mark.parametrize(
     ("bad", "shape"),
-    [(np.zeros((3, 8), np.float32), "(3, 8)"), (np.zeros((2, 3, DIM), np.float32), "(2, 3, 16)"), (np.zeros(5), "(5,)")],
+    [(np.zeros((3, 8), np.float32), "(3, 8)"), (np.zeros((2, 3, DIM), np.float32), "(2, 3, 16)"),
+     (np.zeros(5), "(5,)")],
 )
 def test_descriptors_of_the_wrong_shape_are_refused_naming_the_shape(bad: np.ndarray, shape: str) -> None:
     m = DescriptorMap(MapConfig(dim=DIM))

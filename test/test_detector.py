@@ -1,10 +1,13 @@
 """The loop detector keyframes, excludes recent frames and finds revisits, without ROS."""
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 import pytest
 import torch
 
+from lcpr_core.describer import Describer
 from lcpr_core.descriptor_map import DescriptorMap
 from lcpr_core.detector import DetectorConfig, Frame, KeyframeConfig, LoopDetector, MatchConfig, SensorConfig
 from lcpr_core.verification import VerifierConfig
@@ -25,6 +28,11 @@ class PlaceDescriber:
         return (v / np.linalg.norm(v))[None]
 
 
+def place_describer() -> Describer:
+    """A PlaceDescriber in a Describer's place: the detector calls only inputs and describe_tensors."""
+    return cast(Describer, PlaceDescriber())
+
+
 def frame(t: float, x: float, y: float = 0.0, *, cams=6, pose=True, missing=()) -> Frame:
     pose_m = np.eye(4)
     pose_m[:3, 3] = (x, y, 0)
@@ -34,7 +42,7 @@ def frame(t: float, x: float, y: float = 0.0, *, cams=6, pose=True, missing=()) 
 
 def detector(**match) -> LoopDetector:
     config = DetectorConfig(match=MatchConfig(**{"max_distance": 0.5, **match}), verify=RETRIEVAL_ONLY)
-    return LoopDetector(config, describer=PlaceDescriber())
+    return LoopDetector(config, describer=place_describer())
 
 
 def test_without_odometry_at_most_one_keyframe_per_half_second():
@@ -44,7 +52,7 @@ def test_without_odometry_at_most_one_keyframe_per_half_second():
 
 
 def test_with_odometry_a_keyframe_needs_the_configured_travel():
-    det = LoopDetector(DetectorConfig(keyframe=KeyframeConfig(min_distance=2.0)), describer=PlaceDescriber())
+    det = LoopDetector(DetectorConfig(keyframe=KeyframeConfig(min_distance=2.0)), describer=place_describer())
     reasons = [det.process(frame(t, x)).reason for t, x in ((0, 0), (1, 1), (2, 2.5), (3, 3))]
     assert reasons == ["keyframe", "not moved", "keyframe", "not moved"]
 
@@ -60,10 +68,13 @@ def test_out_of_order_duplicate_and_lidar_less_frames_are_not_keyframes():
 
 
 def test_a_missing_cloud_can_still_make_a_keyframe_when_configured():
-    det = LoopDetector(DetectorConfig(sensors=SensorConfig(require_lidar=False)), describer=PlaceDescriber())
-    stub = PlaceDescriber()
-    stub.inputs = lambda images, points: (torch.zeros(1), torch.zeros(1, 3, dtype=torch.float64))
-    det.describer = stub
+    det = LoopDetector(DetectorConfig(sensors=SensorConfig(require_lidar=False)), describer=place_describer())
+
+    class NoPoints(PlaceDescriber):
+        def inputs(self, images, points):
+            return torch.zeros(1), torch.zeros(1, 3, dtype=torch.float64)
+
+    det.describer = cast(Describer, NoPoints())
     assert det.process(Frame(stamp=0.0, images=[b"x"] * 6, points=None)).reason == "keyframe"
 
 
@@ -104,8 +115,8 @@ def test_entries_of_a_prior_session_are_never_excluded_by_time():
     prior_det = detector()
     for t in range(5):
         prior_det.process(frame(1000.0 + t, float(t)))
-    det = LoopDetector(DetectorConfig(match=MatchConfig(max_distance=0.5), verify=RETRIEVAL_ONLY), describer=PlaceDescriber(),
-                       prior_map=prior_det.map)
+    det = LoopDetector(DetectorConfig(match=MatchConfig(max_distance=0.5), verify=RETRIEVAL_ONLY),
+                       describer=place_describer(), prior_map=prior_det.map)
     r = det.process(frame(0.0, 3.0))  # earlier clock, same place as prior keyframe 3
     assert r.loop is not None and r.loop.match_id == 3
     assert r.keyframe_id == 5

@@ -10,6 +10,7 @@ from lcpr_ros import inputs
 from lcpr_ros.errors import InputRejected
 from msg_tools import pointcloud2_to_array
 
+
 def _rows(name: str) -> int:
     return max(LAYOUTS[name].rows, 16)
 
@@ -43,6 +44,7 @@ def test_an_organised_ouster_cloud_keeps_its_shape_and_driver_fields() -> None:
     xyz, valid = scan(64, 1024, seed=3)
     array = pointcloud2_to_array(driver_cloud(layout, xyz, valid))
     assert array.shape == (64, 1024) and array.dtype.itemsize == 48
+    assert array.dtype.names is not None
     assert set(array.dtype.names) == {"x", "y", "z", "intensity", "t", "reflectivity", "ring", "ambient", "range"}
     assert array["ring"].dtype == np.uint16 and array["t"].dtype == np.uint32
     returned = valid.reshape(64, 1024)

@@ -99,6 +99,7 @@ def test_the_online_protocol_gives_the_hand_computed_recall_pr_and_f1() -> None:
     assert res.pr.max_f1_threshold == 0.5
     assert res.recall_at_full_precision == pytest.approx(0.1)
     op = res.operating_point
+    assert op is not None
     assert (op.true_positives, op.false_positives, op.false_negatives) == (4, 1, 6)
     assert op.precision == pytest.approx(0.8) and op.recall == pytest.approx(0.4)
 
@@ -144,6 +145,7 @@ def test_ranked_retrieval_agrees_with_the_metrics_module() -> None:
     pr = precision_recall(q_desc, db_desc, q_pos, db_pos, threshold=9.0)
     assert res.recall_at == pytest.approx(want.recalls) and res.num_positives == want.num_queries
     assert res.max_f1 == pytest.approx(pr.max_f1)
+    assert res.pr is not None
     assert np.allclose(res.pr.precision, pr.precision) and np.allclose(res.pr.recall, pr.recall)
 
 
@@ -243,7 +245,7 @@ def write_loop_bag(path: Path, *, frames: int = 24) -> None:
             local = (world[:, :2] - pose[:2, 3]) @ pose[:2, :2]  # world -> vehicle frame
             cloud = xyz_cloud(np.c_[local, world[:, 2] - 1.8], intensity=noise.random(3000).astype(np.float32))
             place = np.random.default_rng(100 + i % 16)
-            cams = []
+            cams: list[CameraImage | None] = []
             for c in range(6):
                 rgb = np.clip(place.integers(0, 256, (1, 1, 3)) + noise.normal(0, 8, (48, 128, 3)), 0, 255)
                 cams.append(CameraImage(t + 0.001 * c, f"cam{c}", jpeg=jpeg(rgb.astype(np.uint8))))
@@ -397,6 +399,7 @@ def test_lcpr_eval_reports_the_verified_loops_beside_retrieval(loop_bag: Path) -
     keyframes = report.counts["keyframes"]
     assert keyframes == 24 and 0 <= s.correct <= s.loops <= keyframes
     assert s.precision is None or 0.0 <= s.precision <= 1.0
+    assert s.recall is not None
     assert s.true_revisits == 9 and 0.0 <= s.recall <= 1.0
     assert all(0.0 <= f <= 1.0 for f in verified.fitness)
     assert "identity" in verified.base_T_lidar_source  # the bag has no /tf_static: clouds are in the base frame

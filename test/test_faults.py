@@ -159,13 +159,14 @@ def test_the_save_map_service_answers_a_full_disk_with_the_cause_and_the_old_map
 def test_a_truncated_weights_file_is_refused_with_its_path(tmp_path: Path) -> None:
     """The bundled checkpoint cut short, as an interrupted copy leaves it."""
     from lcpr_core.checkpoint import load_weights
+    from lcpr_core.describer import checkpoint_config
     from lcpr_core.errors import CheckpointError
     from lcpr_core.models import LCPR
 
-    from lcpr_core.describer import checkpoint_config
-
     bundled = Path(__file__).resolve().parents[1] / "weights" / "lcpr_synth_narrow.pth"
-    model = LCPR(width=checkpoint_config(bundled)["width"])
+    config = checkpoint_config(bundled)
+    assert config is not None
+    model = LCPR(width=config["width"])
     load_weights(model, bundled)  # whole, it loads
     cut = tmp_path / "cut.pth"
     cut.write_bytes(bundled.read_bytes()[: bundled.stat().st_size // 2])

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from lcpr_core import LCPR
 from conftest import shared_dir
+from lcpr_core import LCPR
 
 TOL = 1e-5
 
@@ -33,7 +33,9 @@ def test_the_model_has_the_released_parameter_names_and_shapes(keys):
 
 @pytest.mark.parametrize("ref_file", reference_sets(), ids=lambda p: p.stem)
 def test_descriptors_match_the_released_code(ref_file: Path, keys, detweights):
-    seed = int(re.search(r"seed(\d+)", ref_file.stem).group(1))
+    found = re.search(r"seed(\d+)", ref_file.stem)
+    assert found is not None
+    seed = int(found.group(1))
     expected = np.load(ref_file)
     batch = expected["descriptor"].shape[0]
     model = LCPR().eval()
@@ -70,7 +72,7 @@ def test_describe_returns_the_sub_descriptors_the_hooks_see(keys, detweights):
     model = LCPR().eval()
     model.load_state_dict(detweights.det_state_dict(keys, 0))
     images, ranges = detweights.det_camera_input(1, 0), detweights.det_range_input(1, 0)
-    seen = {}
+    seen: dict[str, torch.Tensor] = {}
     model.netvlad_l.register_forward_hook(lambda m, i, o: seen.setdefault("l", o))
     with torch.inference_mode():
         out = model.describe(images, ranges)

@@ -31,7 +31,7 @@ def hand_drive() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """7 keyframes on the x axis; 3, 4 and 6 revisit 0, 1 and 2 (1 m off); 5 is a new place."""
     x = np.array([0.0, 10.0, 20.0, 1.0, 11.0, 50.0, 21.0])
     yaw = np.array([0.0, 0.0, 0.0, 180.0, 170.0, 0.0, 90.0])
-    world_T_lidar = np.stack([pose(xi, 0.0, 0.5, yaw=y) for xi, y in zip(x, yaw)])
+    world_T_lidar = np.stack([pose(xi, 0.0, 0.5, yaw=y) for xi, y in zip(x, yaw, strict=True)])
     has_revisit = np.array([False, False, False, True, True, False, True])
     return world_T_lidar[:, :3, 3].copy(), world_T_lidar, has_revisit
 

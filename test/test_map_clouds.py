@@ -3,11 +3,13 @@ from __future__ import annotations
 
 import json
 import re
+from typing import Any, cast
 
 import numpy as np
 import pytest
 
-from lcpr_core.descriptor_map import SCHEMA_VERSION, DescriptorMap, MapConfig
+from lcpr_core.describer import Describer
+from lcpr_core.descriptor_map import SCHEMA_VERSION, DescriptorMap, MapConfig, Match
 from lcpr_core.detector import DetectorConfig, Frame, LoopDetector, MatchConfig
 from lcpr_core.errors import MapError, VerificationError
 from lcpr_core.verification import REJECT_REASONS, CloudConfig, CloudStore, VerifierConfig, compact_cloud
@@ -69,6 +71,7 @@ def test_a_stored_cloud_reads_back_bit_identical_to_the_compact_cloud(raw_cloud)
     store = CloudStore()
     store.add(7, c)
     back = store.get(7)
+    assert back is not None
     assert back.dtype == np.float32 and back.tobytes() == c.tobytes()
 
 
@@ -77,6 +80,7 @@ def test_compacting_a_stored_cloud_again_changes_at_most_one_percent_of_its_poin
     store = CloudStore()
     store.add(0, compact_cloud(raw_cloud))
     stored = store.get(0)
+    assert stored is not None
     again = compact_cloud(stored)
     assert len(stored) - len(again) <= 0.01 * len(stored)
     stored_rows = {tuple(r) for r in stored.tolist()}
@@ -103,7 +107,8 @@ def test_the_cloud_store_refuses_a_second_cloud_for_a_keyframe_and_knows_what_it
         store.add(1, compact_cloud(raw_cloud))
     assert store.get(2) is None
     store.add(2, np.zeros((0, 3), np.float32))  # a keyframe without points keeps an empty cloud
-    assert store.get(2).shape == (0, 3) and len(store) == 2
+    empty = store.get(2)
+    assert empty is not None and empty.shape == (0, 3) and len(store) == 2
 
 
 # ---------------------------------------------------------------------- map files
@@ -125,8 +130,11 @@ def test_a_map_saved_and_loaded_has_the_same_clouds_bit_for_bit(tmp_path):
     loaded = DescriptorMap.load(tmp_path / "map.npz")
     assert len(loaded.clouds) == len(m.clouds) == 5
     for i in m.ids.tolist():
-        assert loaded.clouds.get(i).tobytes() == m.clouds.get(i).tobytes()
-    assert loaded.clouds.get(4).shape == (0, 3)
+        loaded_cloud, saved_cloud = loaded.clouds.get(i), m.clouds.get(i)
+        assert loaded_cloud is not None and saved_cloud is not None
+        assert loaded_cloud.tobytes() == saved_cloud.tobytes()
+    empty = loaded.clouds.get(4)
+    assert empty is not None and empty.shape == (0, 3)
     assert loaded.clouds.nbytes == m.clouds.nbytes
     assert np.array_equal(loaded.descriptors, m.descriptors) and loaded.ids.tolist() == m.ids.tolist()
     with np.load(tmp_path / "map.npz") as npz:
@@ -161,11 +169,13 @@ def test_a_version_1_map_loads_with_an_empty_cloud_store_and_saves_as_version_2(
     loaded = DescriptorMap.load(tmp_path / "v1.npz")
     assert len(loaded) == 3 and len(loaded.clouds) == 0 and loaded.clouds.get(10) is None
     assert loaded.ids.tolist() == [10, 11, 12] and loaded.sources == ["old"] * 3
-    assert loaded.search(descriptors[1], k=1)[0].id == 11
+    hits = loaded.search(descriptors[1], k=1)
+    assert isinstance(hits[0], Match) and hits[0].id == 11
     loaded.clouds.add(11, np.array([[1.0, 2.0, 3.0]], np.float32))
     loaded.save(tmp_path / "v2.npz")
     again = DescriptorMap.load(tmp_path / "v2.npz")
-    assert len(again.clouds) == 1 and np.array_equal(again.clouds.get(11), [[1.0, 2.0, 3.0]])
+    cloud = again.clouds.get(11)
+    assert len(again.clouds) == 1 and cloud is not None and np.array_equal(cloud, [[1.0, 2.0, 3.0]])
 
 
 def tampered(tmp_path, **changes) -> str:
@@ -233,7 +243,8 @@ def worlds() -> dict[str, np.ndarray]:
 
 
 def keyframe(t: float, key: str, world: np.ndarray, world_T_base: np.ndarray, seed: int) -> Frame:
-    return Frame(stamp=t, images=[key] * 6, points=view(world, world_T_base, seed=seed), pose=world_T_base)
+    images = cast(Any, [key] * 6)  # not images: KeyedDescriber reads the key
+    return Frame(stamp=t, images=images, points=view(world, world_T_base, seed=seed), pose=world_T_base)
 
 
 def first_session(worlds) -> list[Frame]:
@@ -246,7 +257,7 @@ def revisit(worlds, t: float) -> Frame:
 
 def make_detector(verify: VerifierConfig = CONFIG, prior_map: DescriptorMap | None = None) -> LoopDetector:
     return LoopDetector(DetectorConfig(match=MatchConfig(max_distance=1.0), verify=verify),
-                        describer=KeyedDescriber(descriptors()), prior_map=prior_map)
+                        describer=cast(Describer, KeyedDescriber(descriptors())), prior_map=prior_map)
 
 
 def check_verified_revisit(result) -> None:

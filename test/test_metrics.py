@@ -88,9 +88,9 @@ def test_chunked_recall_and_pr_agree_with_a_plain_loop(monkeypatch: pytest.Monke
     rng = np.random.default_rng(0)
     db_pos, q_pos = rng.uniform(0, 100, (200, 2)), rng.uniform(0, 100, (60, 2))
     db_desc, q_desc = rng.standard_normal((200, 8)), rng.standard_normal((60, 8))
-    hits = {1: [], 5: []}
+    hits: dict[int, list[bool]] = {1: [], 5: []}
     top1 = []
-    for qd, qp in zip(q_desc, q_pos):
+    for qd, qp in zip(q_desc, q_pos, strict=True):
         near = np.linalg.norm(db_pos - qp, axis=1) <= 9.0
         dist = np.linalg.norm(db_desc - qd, axis=1)
         order = np.argsort(dist)

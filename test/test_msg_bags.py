@@ -72,22 +72,29 @@ def test_three_written_frames_read_back_equal(tmp_path: Path, storage: str) -> N
     assert len(stream) == 3 and stream.stats.dropped_clouds == 0 and stream.stats.camera_missing == [0, 0]
     back = list(stream)
     assert len(back) == 3
-    for sent, got in zip(frames, back):
+    for sent, got in zip(frames, back, strict=True):
         assert got.stamp == sent.stamp and got.lidar_frame_id == "velodyne"
         assert got.cloud.dtype == sent.cloud.dtype and np.array_equal(got.cloud, sent.cloud)
+        assert got.pose is not None and sent.pose is not None
         assert np.allclose(got.pose, sent.pose, atol=1e-12)
         front, left = got.cameras
+        assert front is not None and left is not None and sent.cameras[0] is not None and sent.cameras[1] is not None
+        assert left.rgb is not None and left.depth is not None and left.labels is not None
+        assert sent.cameras[1].rgb is not None and sent.cameras[1].depth is not None
+        assert sent.cameras[1].labels is not None
         assert front.jpeg == sent.cameras[0].jpeg and front.stamp == sent.cameras[0].stamp
         assert front.frame_id == "front_optical"
         assert np.array_equal(left.rgb, sent.cameras[1].rgb)
         assert np.array_equal(left.depth, sent.cameras[1].depth)
         assert np.array_equal(left.labels, sent.cameras[1].labels)
+    assert back[0].cameras[1] is not None and back[1].cameras[1] is not None
+    assert back[0].cameras[1].labels is not None and back[1].cameras[1].labels is not None
     assert back[1].cameras[1].labels.dtype == np.uint32 and back[0].cameras[1].labels.dtype == np.uint16
 
     models = read_camera_models(bag, topics=TOPICS)
-    for want, got in zip(_models(), models):
-        assert got is not None and got.frame_id == want.frame_id and np.array_equal(got.K, want.K)
-        assert np.allclose(got.base_T_cam, want.base_T_cam, atol=1e-12)
+    for want, model in zip(_models(), models, strict=True):
+        assert model is not None and model.frame_id == want.frame_id and np.array_equal(model.K, want.K)
+        assert np.allclose(model.base_T_cam, want.base_T_cam, atol=1e-12)
 
 
 def test_a_bag_summary_counts_every_topic(tmp_path: Path) -> None:
@@ -126,6 +133,7 @@ def test_images_outside_the_slop_are_counted_not_used(tmp_path: Path) -> None:
     assert not stats.odometry_topic and stats.no_pose == 2
     frames = list(stream)
     assert [f.stamp for f in frames] == [10.0, 11.0]
+    assert frames[0].cameras[0] is not None and frames[1].cameras[1] is not None
     assert frames[0].cameras[1] is None and frames[0].cameras[0].stamp == 10.03
     assert frames[1].cameras[1].stamp == 10.98
     assert len(list(read_frames(tmp_path / "bag", topics=topics, slop=0.06, min_cameras=2))) == 1
@@ -143,6 +151,7 @@ def test_odometry_is_interpolated_to_the_cloud_stamp(tmp_path: Path) -> None:
         w.write_cloud("/points", xyz_cloud(np.zeros((1, 3))), frame_id="l", stamp=105.0)
     stream = read_frames(tmp_path / "bag", topics=topics, slop=0.05)
     frames = list(stream)
+    assert frames[0].pose is not None and frames[1].pose is not None
     assert np.allclose(frames[0].pose[:3, 3], [1.0, 0.5, 0.0])
     yaw = np.arctan2(frames[0].pose[1, 0], frames[0].pose[0, 0])
     assert yaw == pytest.approx(np.pi / 8)

@@ -4,6 +4,7 @@ from __future__ import annotations
 import shutil
 from decimal import Decimal
 from pathlib import Path
+from typing import TypedDict
 
 import numpy as np
 import pytest
@@ -21,7 +22,7 @@ P0: 7.188560000000e+02 0.000000000000e+00 6.071928000000e+02 0.000000000000e+00 
 P1: 7.188560000000e+02 0.000000000000e+00 6.071928000000e+02 -3.861448000000e+02 0.000000000000e+00 7.188560000000e+02 1.852157000000e+02 0.000000000000e+00 0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 0.000000000000e+00
 P2: 7.188560000000e+02 0.000000000000e+00 6.071928000000e+02 4.538225000000e+01 0.000000000000e+00 7.188560000000e+02 1.852157000000e+02 -1.130887000000e-01 0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 3.779761000000e-03
 Tr: 4.276802385584e-04 -9.999672484946e-01 -8.084491683471e-03 -1.198459927713e-02 -7.210626507497e-03 8.081198471645e-03 -9.999413164504e-01 -5.403984729748e-02 9.999738645903e-01 4.859485810390e-04 -7.206933692422e-03 -2.921968648686e-01
-"""
+"""  # noqa: E501 - the file's lines verbatim
 WIDTH, HEIGHT = 1241, 376
 
 
@@ -30,7 +31,16 @@ def _tr() -> np.ndarray:
     return np.vstack([np.reshape(values, (3, 4)), [0, 0, 0, 1]])
 
 
-def build_sequence(root: Path, kitti00: Path, *, labels: bool) -> dict[str, object]:
+class Expected(TypedDict):
+    """What a converted sequence must hold, per scan."""
+
+    images: list[np.ndarray]
+    labels: list[np.ndarray]
+    poses: np.ndarray
+    times_ns: list[int]
+
+
+def build_sequence(root: Path, kitti00: Path, *, labels: bool) -> Expected:
     (root / "velodyne").mkdir(parents=True)
     (root / "image_2").mkdir()
     pose_lines = (kitti00 / "poses.txt").read_text().splitlines()
@@ -80,7 +90,7 @@ def test_a_converted_sequence_reads_back_scans_images_labels_and_velodyne_poses(
     frames = list(stream)
     assert len(frames) == 4 and stream.stats.dropped_clouds == 0 and stream.stats.no_pose == 0
     Tr = _tr()
-    for i, (frame, old) in enumerate(zip(frames, SCANS)):
+    for i, (frame, old) in enumerate(zip(frames, SCANS, strict=True)):
         assert frame.extras["stamp_ns"] == 1_317_000_000 * 10**9 + expected["times_ns"][i]
         points = np.fromfile(kitti00 / f"{old}.bin", dtype=np.float32).reshape(-1, 4)
         assert frame.lidar_frame_id == "velodyne"
@@ -89,15 +99,17 @@ def test_a_converted_sequence_reads_back_scans_images_labels_and_velodyne_poses(
         assert np.array_equal(frame.cloud["intensity"], points[:, 3])
         assert np.array_equal(frame.cloud["label"], expected["labels"][i])
         (camera,) = frame.cameras
+        assert camera is not None and camera.rgb is not None and frame.pose is not None
         assert camera.frame_id == "camera_left" and np.array_equal(camera.rgb, expected["images"][i])
         want = invert_pose(Tr) @ expected["poses"][i] @ Tr
         assert np.allclose(frame.pose, want, atol=1e-9)
+    assert frames[0].pose is not None and frames[3].pose is not None
     assert np.allclose(frames[0].pose, np.eye(4), atol=1e-6)  # map = the first scan's Velodyne frame
     assert frames[3].pose[0, 3] > 5.0  # KITTI-00 drives forward (Velodyne x) at the start
 
     (model,) = read_camera_models(tmp_path / "bag", topics=KITTI_TOPICS)
     assert model is not None and (model.width, model.height) == (WIDTH, HEIGHT)
-    assert np.allclose(model.K, [[718.856, 0, 607.1928], [0, 718.856, 185.2157], [0, 0, 1]])
+    assert np.allclose(model.K, [[718.856, 0, 607.1928], [0, 718.856, 185.2157], [0, 0, 1.0]])
     # the camera looks along the Velodyne's x axis and sits about 0.27 m ahead of it, 0.06 m to the left
     assert np.allclose(model.base_T_cam[:3, 2], [1, 0, 0], atol=0.02)
     assert model.base_T_cam[0, 3] == pytest.approx(0.27, abs=0.02)
@@ -109,6 +121,7 @@ def test_depth_images_hold_projected_ranges(kitti00: Path, tmp_path: Path) -> No
     convert_kitti(seq, tmp_path / "bag", depth=True, limit=1, storage="mcap")
     (frame,) = list(read_frames(tmp_path / "bag", topics=KITTI_TOPICS))
     camera = frame.cameras[0]
+    assert camera is not None and camera.depth is not None and camera.labels is not None
     assert camera.depth.shape == (HEIGHT, WIDTH) and camera.depth.dtype == np.float32
     hit = camera.depth > 0
     assert 5_000 < hit.sum() < 40_000 and camera.depth[hit].max() < 90.0
@@ -141,7 +154,9 @@ def test_inconsistent_sequences_are_refused_by_name(kitti00: Path, tmp_path: Pat
     assert not (tmp_path / "bag").exists()
 
 
-def test_the_command_lines_convert_and_describe(kitti00: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_the_command_lines_convert_and_describe(
+    kitti00: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     seq = tmp_path / "00"
     build_sequence(seq, kitti00, labels=False)
     assert main([str(seq), "--out", str(tmp_path / "bag"), "--limit", "1", "--no-progress"]) == 0

@@ -40,10 +40,10 @@ def build_dataset(root: Path, sample_dir: Path) -> dict[str, object]:
     files = {}
     for path in sorted(sample_dir.iterdir()):
         channel = path.name.split("__")[1]
-        rel = Path("samples") / channel / path.name
-        (root / rel).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(path, root / rel)
-        files[channel] = (str(rel), int(path.name.split("__")[2].split(".")[0]))
+        rel_path = Path("samples") / channel / path.name
+        (root / rel_path).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(path, root / rel_path)
+        files[channel] = (str(rel_path), int(path.name.split("__")[2].split(".")[0]))
     channels = [*NUSCENES_CAMERAS, "LIDAR_TOP"]
     sensors = [{"token": f"sensor-{c}", "channel": c, "modality": "lidar" if c == "LIDAR_TOP" else "camera"}
                for c in channels]
@@ -122,7 +122,7 @@ def test_a_converted_keyframe_keeps_its_jpeg_bytes_cloud_pose_and_calibration(
     (frame,) = list(stream)
     lidar_rel, lidar_us = expected["files"]["LIDAR_TOP"]
     assert frame.extras["stamp_ns"] == lidar_us * 1000 and frame.lidar_frame_id == "LIDAR_TOP"
-    for channel, image in zip(NUSCENES_CAMERAS, frame.cameras):
+    for channel, image in zip(NUSCENES_CAMERAS, frame.cameras, strict=True):
         rel, us = expected["files"][channel]
         assert image is not None and image.frame_id == channel
         assert image.jpeg == (root / rel).read_bytes()
@@ -132,10 +132,11 @@ def test_a_converted_keyframe_keeps_its_jpeg_bytes_cloud_pose_and_calibration(
     for column, name in enumerate(("x", "y", "z", "intensity")):
         assert np.array_equal(frame.cloud[name], points[:, column])
     assert np.array_equal(frame.cloud["ring"], points[:, 4].astype(np.uint16))
+    assert frame.pose is not None
     assert np.allclose(frame.pose, expected["poses"][(0, "LIDAR_TOP")], atol=1e-9)
 
     models = read_camera_models(bag, topics=NUSCENES_TOPICS)
-    for channel, model in zip(NUSCENES_CAMERAS, models):
+    for channel, model in zip(NUSCENES_CAMERAS, models, strict=True):
         T, K = expected["extrinsics"][channel]
         assert model is not None and model.name == channel and (model.width, model.height) == (1600, 900)
         assert np.allclose(model.K, K) and np.allclose(model.base_T_cam, T, atol=1e-9)

@@ -53,7 +53,9 @@ def test_three_dimensional_positions_use_their_height() -> None:
     gap=st.floats(0.0, 50.0),
     seed=st.integers(0, 2**31),
 )
-def test_grid_search_finds_exactly_the_brute_force_pairs(n: int, dims: int, radius: float, gap: float, seed: int) -> None:
+def test_grid_search_finds_exactly_the_brute_force_pairs(
+    n: int, dims: int, radius: float, gap: float, seed: int
+) -> None:
     rng = np.random.default_rng(seed)
     positions = rng.uniform(-60, 60, size=(n, dims))
     stamps = rng.uniform(0, 300, size=n)

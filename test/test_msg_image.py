@@ -1,11 +1,14 @@
 """Image, CompressedImage and CameraInfo conversions: roundtrips over encodings and padding, and errors."""
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from camera_encodings import blocky_rgb, mosaic, nv21, packed_yuv422, smooth_rgb
 from msg_tools import (
     CameraInfoError,
     CameraModel,
@@ -25,8 +28,6 @@ from msg_tools.compressed import compressed_bytes, encode_image
 from msg_tools.image import ENCODINGS, PACKED_YUV_ENCODINGS
 from msg_tools.types import message_class
 
-from camera_encodings import blocky_rgb, mosaic, nv21, packed_yuv422, smooth_rgb
-
 Image = message_class("sensor_msgs/msg/Image")
 Header = message_class("std_msgs/msg/Header")
 Time = message_class("builtin_interfaces/msg/Time")
@@ -44,7 +45,7 @@ def _pixels(encoding: str, height: int, width: int, seed: int) -> np.ndarray:
     return rng.integers(info.min, info.max, size=shape, endpoint=True, dtype=enc.dtype)
 
 
-def _message(pixels: np.ndarray, encoding: str, *, pad: int, bigendian: bool) -> object:
+def _message(pixels: np.ndarray, encoding: str, *, pad: int, bigendian: bool) -> Any:
     """Pack rows by hand (with ``pad`` junk bytes after each row), independently of the code under test."""
     stored = pixels.astype(pixels.dtype.newbyteorder(">" if bigendian else "<"))
     rows = [stored[r].tobytes() + b"\xab" * pad for r in range(pixels.shape[0])]
@@ -96,7 +97,9 @@ def test_depth_becomes_metres_with_zero_for_unknown() -> None:
     metres = depth_to_metres(array_to_image(mm, encoding="16UC1", frame_id="c", stamp=0.0))
     assert metres.dtype == np.float32 and np.allclose(metres, [[0, 1.5], [0.02, 65.535]])
     raw = np.array([[np.nan, 2.5], [-1.0, np.inf]], dtype=np.float32)
-    assert depth_to_metres(array_to_image(raw, encoding="32FC1", frame_id="c", stamp=0.0)).tolist() == [[0, 2.5], [0, 0]]
+    assert depth_to_metres(
+        array_to_image(raw, encoding="32FC1", frame_id="c", stamp=0.0)
+    ).tolist() == [[0, 2.5], [0, 0]]
     with pytest.raises(ImageEncodingError, match="not a depth encoding"):
         depth_to_metres(array_to_image(_pixels("rgb8", 2, 2, 0), encoding="rgb8", frame_id="c", stamp=0.0))
 
@@ -130,7 +133,9 @@ def test_png_roundtrips_exactly_and_jpeg_approximately() -> None:
     png = array_to_compressed(rgb, format="png", frame_id="c", stamp=2.0)
     assert png.format == "png" and np.array_equal(compressed_to_array(png), rgb)
     mono16 = (xx * 1000).astype(np.uint16)
-    assert np.array_equal(compressed_to_array(array_to_compressed(mono16, format="png", frame_id="c", stamp=0.0)), mono16)
+    assert np.array_equal(
+        compressed_to_array(array_to_compressed(mono16, format="png", frame_id="c", stamp=0.0)), mono16
+    )
     jpeg = array_to_compressed(rgb, format="jpeg", quality=95, frame_id="c", stamp=2.0)
     decoded = compressed_to_array(jpeg)
     assert decoded.shape == rgb.shape and np.abs(decoded.astype(int) - rgb).mean() < 3

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, Literal
 
 import numpy as np
 import pytest
@@ -78,9 +79,9 @@ def _values(layout: Layout) -> dict[str, np.ndarray]:
     return out
 
 
-def _message(layout: Layout, values: dict[str, np.ndarray]) -> object:
+def _message(layout: Layout, values: dict[str, np.ndarray]) -> Any:
     """Pack values byte by byte, independently of the code under test."""
-    order = ">" if layout.bigendian else "<"
+    order: Literal[">", "<"] = ">" if layout.bigendian else "<"
     row_step = layout.point_step * layout.width + layout.row_pad
     buf = bytearray(row_step * layout.height)
     for r in range(layout.height):
@@ -98,6 +99,7 @@ def _message(layout: Layout, values: dict[str, np.ndarray]) -> object:
 
 
 def _assert_fields_equal(arr: np.ndarray, values: dict[str, np.ndarray], shape: tuple[int, ...]) -> None:
+    assert arr.dtype.names is not None
     assert set(arr.dtype.names) == set(values)
     for name, expected in values.items():
         got = arr[name]
@@ -144,6 +146,7 @@ def test_a_padded_big_endian_cloud_comes_back_native() -> None:
     layout = Layout([("x", 0, 7, 1), ("y", 4, 7, 1), ("z", 8, 7, 1), ("intensity", 16, 7, 1), ("ring", 20, 4, 1)],
                     point_step=32, height=1, width=4, row_pad=3, bigendian=True, seed=3)
     arr = pointcloud2_to_array(_message(layout, _values(layout)))
+    assert arr.dtype.fields is not None and arr.dtype.names is not None
     assert arr.dtype.fields["intensity"][1] == 16 and all(arr.dtype[n].isnative for n in arr.dtype.names)
 
 
@@ -155,7 +158,7 @@ def test_an_organised_array_makes_an_organised_cloud() -> None:
     assert np.array_equal(pointcloud2_to_array(msg), arr)
 
 
-def _simple(**overrides: object) -> object:
+def _simple(**overrides: object) -> Any:
     layout = Layout([("x", 0, 7, 1), ("y", 4, 7, 1), ("z", 8, 7, 1)], 12, 1, 2, 0, False, 0)
     msg = _message(layout, _values(layout))
     for key, value in overrides.items():

@@ -242,7 +242,9 @@ def test_pose_graph_error_is_an_lcpr_error() -> None:
          r"loops\[0\].query=7; expected an index into the 5 poses \(0..4\)"),
         (lambda: optimize_pose_graph(_graph_inputs()[0], _graph_inputs()[1][:2], []),
          r"step_covariances of shape \(2, 6, 6\); expected \(4, 6, 6\)"),
-        (lambda: optimize_pose_graph(*_graph_inputs(), [(3, 0)]), r"loops\[0\] is a tuple; expected a LoopConstraint"),
+        # a wrong type on purpose: the refusal at run time is what is tested
+        (lambda: optimize_pose_graph(*_graph_inputs(), [(3, 0)]),  # type: ignore[list-item]
+         r"loops\[0\] is a tuple; expected a LoopConstraint"),
         (lambda: ate_rmse(straight(3.0), straight(4.0)), "estimate of 4 and truth of 5 poses"),
         (lambda: lidar_to_body(np.eye(4), np.eye(3)), r"body_T_lidar of shape \(3, 3\)"),
     ],

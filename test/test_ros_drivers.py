@@ -11,6 +11,7 @@ import rclpy
 from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.publisher import Publisher
 from sensor_msgs.msg import Image, PointCloud2
 
 from camera_encodings import mosaic, nv21, packed_yuv422
@@ -29,8 +30,8 @@ T0 = 1_700_000_000.0
 class Ros:
     node: LcprNode
     driver: Node
-    cameras: list
-    lidar: object
+    cameras: list[Publisher]
+    lidar: Publisher
 
 
 @pytest.fixture()
@@ -104,7 +105,7 @@ def test_camera_native_encodings_reach_the_model_as_the_rgb_they_encode(ros: Ros
     assert len(seen["images"]) == 6 and len(seen["points"]) == 1
     rows, cols = np.mgrid[0:place.rgb[0].shape[0], 0:place.rgb[0].shape[1]]
     inside = (rows % 8 >= 2) & (rows % 8 <= 5) & (cols % 8 >= 2) & (cols % 8 <= 5)  # away from block edges
-    for got, sent in zip(seen["images"], place.rgb):
+    for got, sent in zip(seen["images"], place.rgb, strict=True):
         assert got.shape == sent.shape
         assert np.abs(got[inside].astype(int) - sent[inside]).max() <= 3, encoding
     assert np.allclose(seen["points"][0], xyz[:usable][valid], atol=1e-5)

@@ -9,13 +9,16 @@ import random
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 import rclpy
+from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
+from rclpy.client import Client
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -137,7 +140,7 @@ def test_an_exact_revisit_more_than_30_s_later_is_matched_to_the_right_frame(ros
     assert rows[0]["query_stamp"] == pytest.approx(T0 + 40.0) and rows[0]["match_stamp"] == pytest.approx(T0 + 1.0)
     assert rows[0]["query_id"] == len(ros.node.detector.map) - 1 and rows[0]["degraded"] == 0
     assert [r["rank"] for r in rows] == list(range(len(rows)))
-    assert all(a["distance"] <= b["distance"] for a, b in zip(rows, rows[1:]))
+    assert all(a["distance"] <= b["distance"] for a, b in zip(rows, rows[1:], strict=False))
 
 
 def test_markers_join_the_query_and_the_matched_position_coloured_by_distance(ros: Ros) -> None:
@@ -158,21 +161,25 @@ def test_bad_input_is_dropped_counted_and_warned_once_per_cause_and_the_map_is_k
     size_before = len(node.detector.map)
     logged_before = node.warnings.logged
     t = T0 + 50.0
+    assert pub.odom is not None
     for repeat in range(2):  # every cause twice: still one warning each
         t += 1.0
         pub.lidar.publish(cloud_without_xyz(t))
         pub.lidar.publish(truncated_cloud(place, t + 0.1))
         pub.cameras[0].publish(image_with_unknown_encoding(t, compressed=True))
         pub.cameras[1].publish(image_of_wrong_size(t, compressed=True))
-        bad_pose = pub.odom.msg_type()
+        bad_pose = Odometry()
         bad_pose.header.stamp.sec = int(t)
         bad_pose.pose.pose.orientation.w = 0.0  # a zero quaternion
         pub.odom.publish(bad_pose)
         # sensor-data QoS keeps the last 5 messages per topic: the next round waits until this one is counted
-        causes = (inputs.CLOUD_NO_XYZ, inputs.CLOUD_TRUNCATED, inputs.IMAGE_ENCODING, inputs.IMAGE_SIZE,
-                  inputs.ODOM_BAD)
-        assert wait_until(lambda: all(node.drops[k] >= repeat + 1 for k in causes), 10), node.drops.snapshot()
-    expected = {cause: 2 for cause in causes}
+        dropped_causes = (inputs.CLOUD_NO_XYZ, inputs.CLOUD_TRUNCATED, inputs.IMAGE_ENCODING, inputs.IMAGE_SIZE,
+                          inputs.ODOM_BAD)
+
+        def counted(repeat: int = repeat, causes: tuple[str, ...] = dropped_causes) -> bool:
+            return all(node.drops[k] >= repeat + 1 for k in causes)
+        assert wait_until(counted, 10), node.drops.snapshot()
+    expected = {cause: 2 for cause in dropped_causes}
     assert wait_until(lambda: all(node.drops[k] >= n for k, n in expected.items()), 10), node.drops.snapshot()
 
     # a good frame, then the same stamp again (duplicate) and an older one (out of order), camera and cloud
@@ -228,7 +235,7 @@ def test_a_camera_that_stops_degrades_frames_instead_of_stopping_them(ros: Ros) 
     assert wait_until(lambda: ros.listener.latest_values("inputs").get("stopped cameras") == ros.topics.cameras[3], 5)
 
 
-def call(node: Node, client: object, request: object, timeout: float = 20.0) -> object:
+def call(node: Node, client: Client, request: Any, timeout: float = 20.0) -> Any:
     assert client.wait_for_service(timeout_sec=timeout)
     future = client.call_async(request)
     assert wait_until(future.done, timeout)
@@ -237,7 +244,7 @@ def call(node: Node, client: object, request: object, timeout: float = 20.0) -> 
 
 def test_the_save_map_service_saves_every_keyframe_and_answers_with_count_and_path(ros: Ros) -> None:
     visit_places(ros)
-    client = ros.driver.create_client(Trigger, "/lcpr/save_map")
+    client: Client = ros.driver.create_client(Trigger, "/lcpr/save_map")
     response = call(ros.driver, client, Trigger.Request())
     count = len(ros.node.detector.map)
     assert response.success and response.message == f"saved {count} places to {ros.map_path}"
@@ -247,9 +254,9 @@ def test_the_save_map_service_saves_every_keyframe_and_answers_with_count_and_pa
 
 def test_parameters_set_at_run_time_are_validated_over_the_parameter_service(ros: Ros) -> None:
     visit_places(ros)
-    client = ros.driver.create_client(SetParameters, "/lcpr/set_parameters")
+    client: Client = ros.driver.create_client(SetParameters, "/lcpr/set_parameters")
 
-    def set_one(name: str, value: ParameterValue) -> object:
+    def set_one(name: str, value: ParameterValue) -> Any:
         request = SetParameters.Request(parameters=[ParameterMsg(name=name, value=value)])
         return call(ros.driver, client, request).results[0]
 
@@ -306,14 +313,16 @@ def test_invalid_parameters_or_an_unusable_map_file_refuse_to_build_the_node(ros
     visit_places(ros)
     ros.node.save_map()
     with pytest.raises(ConfigError, match="match.top_k"):
-        LcprNode(context=ros.context, namespace="/bad1", parameter_overrides=small_model(ros.topics, **{"match.top_k": 0}))
+        LcprNode(context=ros.context, namespace="/bad1",
+                 parameter_overrides=small_model(ros.topics, **{"match.top_k": 0}))
     with pytest.raises(ConfigError, match="image_size"):
         LcprNode(context=ros.context, namespace="/bad2",
                  parameter_overrides=small_model(ros.topics, **{"model.image_size": [30, 90]}))
     corrupt = tmp_path / "corrupt.npz"
     corrupt.write_bytes(b"PK\x03\x04 definitely not a map")
     with pytest.raises(MapLoadError, match="refusing to start"):
-        LcprNode(context=ros.context, namespace="/bad3", parameter_overrides=small_model(ros.topics, **{"map.path": str(corrupt)}))
+        LcprNode(context=ros.context, namespace="/bad3",
+                 parameter_overrides=small_model(ros.topics, **{"map.path": str(corrupt)}))
     assert corrupt.read_bytes() == b"PK\x03\x04 definitely not a map"
     other = tmp_path / "other.npz"
     DescriptorMap.load(ros.map_path).save(other)

@@ -24,6 +24,8 @@ def test_a_candidate_row_reads_back_to_its_relative_pose_and_covariance() -> Non
     unregistered = Candidate(7, 4, 40.0, 2.0, 0.4, 1, None, False, verification="no cloud")
     rows = parse_candidates(candidates_msg(Result(40.0, 7, "keyframe", [verified, unregistered])))
     assert list(rows[0]) == list(CANDIDATE_COLUMNS)
-    assert np.allclose(row_pose(rows[0]), T) and np.allclose(row_covariance(rows[0]), cov)
+    pose, covariance = row_pose(rows[0]), row_covariance(rows[0])
+    assert pose is not None and covariance is not None
+    assert np.allclose(pose, T) and np.allclose(covariance, cov)
     assert rows[0]["verified"] == 1.0 and rows[0]["fitness"] == pytest.approx(0.6)
     assert row_pose(rows[1]) is None and row_covariance(rows[1]) is None and rows[1]["verified"] == 0.0

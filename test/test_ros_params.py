@@ -14,7 +14,7 @@ from rclpy.parameter import Parameter
 from lcpr_core.detector import DetectorConfig, MatchConfig
 from lcpr_ros.config import NodeConfig, SyncConfig
 from lcpr_ros.errors import ConfigError
-from lcpr_ros.params import all_leaves, build, leaves, settings_from, to_yaml
+from lcpr_ros.params import Settings, all_leaves, build, leaves, settings_from, to_yaml
 from lcpr_ros.ros_params import RuntimeParameters, declare
 
 REPO = Path(__file__).resolve().parents[1]
@@ -133,7 +133,7 @@ def test_overrides_outside_a_range_or_of_the_wrong_type_refuse_the_start(context
 
 def test_run_time_changes_are_validated_by_building_the_config(context) -> None:
     node = rclpy.create_node("lcpr", context=context)
-    applied = []
+    applied: list[Settings] = []
     try:
         leaves_ = all_leaves()
         settings_from(declare(node, leaves_))

@@ -19,9 +19,9 @@ from lcpr_ros import inputs
 from lcpr_ros.harness import (
     FramePublisher,
     OutputListener,
-    driver_node,
     cloud_with_nan,
     cloud_without_xyz,
+    driver_node,
     image_of_wrong_size,
     image_with_unknown_encoding,
     synthetic_place,
@@ -182,7 +182,10 @@ def test_bad_input_to_the_process_is_warned_once_per_cause_counted_in_diagnostic
         pub.cameras[1].publish(image_of_wrong_size(t, compressed=False))
         # sensor-data QoS keeps the last 5 messages per topic: the next round waits until this one is counted
         causes = (inputs.CLOUD_NO_XYZ, inputs.CLOUD_TRUNCATED, inputs.IMAGE_ENCODING, inputs.IMAGE_SIZE)
-        assert wait_until(lambda: all(dropped(c) >= repeat + 1 for c in causes), 10)
+
+        def counted(repeat: int = repeat, causes: tuple[str, ...] = causes) -> bool:
+            return all(dropped(c) >= repeat + 1 for c in causes)
+        assert wait_until(counted, 10)
     t += 1.0
     driver.feed(1, t)
     pub.publish(place, t)  # duplicate stamps
@@ -231,7 +234,8 @@ def test_sigterm_finishes_the_frame_in_progress_saves_it_and_a_restart_keeps_eve
     try:
         second.wait_for(r"with 4 places")
         driver.feed(1, T0 + 61.0)  # prior-session places are never excluded by time
-        assert driver.listener.wait(lambda o: bool(o.candidates) and o.candidates[-1][0]["query_stamp"] == pytest.approx(T0 + 61.0), 10)
+        assert driver.listener.wait(
+            lambda o: bool(o.candidates) and o.candidates[-1][0]["query_stamp"] == pytest.approx(T0 + 61.0), 10)
         best = driver.listener.out.candidates[-1][0]
         assert best["query_id"] == 4 and best["distance"] == pytest.approx(0.0, abs=1e-4)
         assert best["match_id"] in saved.ids.tolist()

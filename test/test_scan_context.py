@@ -152,4 +152,6 @@ def test_real_kitti_scans_grow_apart_as_the_car_drives_on(shared: Path) -> None:
     sc = {i: scan_context(p) for i, p in scans.items()}
     d1, d5, d15 = (sc_distance(sc[i], sc[0])[0] for i in (1, 5, 15))
     assert d1 < d5 < d15
-    assert sc_distance(scan_context(rotate(scans[0].astype(np.float64), 90.0)), sc[0]) == (pytest.approx(0, abs=1e-6), 15)
+    assert sc_distance(scan_context(rotate(scans[0].astype(np.float64), 90.0)), sc[0]) == (
+        pytest.approx(0, abs=1e-6), 15
+    )

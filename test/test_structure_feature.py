@@ -6,7 +6,11 @@ import pytest
 
 from lcpr_core import lidar_slices, structure_feature
 from lcpr_core.preprocess.structure import (
-    CLASSES, camera_feature, camera_points, cityscapes_to_semantickitti, sequence_indices,
+    CLASSES,
+    camera_feature,
+    camera_points,
+    cityscapes_to_semantickitti,
+    sequence_indices,
 )
 
 BUILDING, ROAD, CAR = 5, 1, 0

@@ -4,6 +4,7 @@ from __future__ import annotations
 import io
 from collections.abc import Callable
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -37,7 +38,7 @@ from msg_tools.synth.route import (
 )
 from msg_tools.synth.world import GroundMap, ObjectsBuilder, ParkingSlots
 
-EXACT = dict(lidar_noise=LidarNoise.off(), pixel_noise=False, camera_drop=0.0)
+EXACT: dict[str, Any] = dict(lidar_noise=LidarNoise.off(), pixel_noise=False, camera_drop=0.0)
 
 
 @pytest.fixture(scope="module")
@@ -85,7 +86,7 @@ def test_worker_processes_give_the_same_frames_as_one_process(nus: SyntheticDriv
     serial = list(nus.frames(start=1, stop=4))
     parallel = list(nus.frames(workers=2, start=1, stop=4))
     assert [f.extras["index"] for f in parallel] == [1, 2, 3]
-    for a, b in zip(serial, parallel):
+    for a, b in zip(serial, parallel, strict=True):
         assert a.cloud.tobytes() == b.cloud.tobytes()
         assert [c.jpeg if c else None for c in a.cameras] == [c.jpeg if c else None for c in b.cameras]
 
@@ -203,7 +204,7 @@ def test_parked_cars_change_between_visits(nus: SyntheticDrive) -> None:
     def cars(stamp: float) -> set[tuple[float, float, int]]:
         o = nus.world.objects_near(x, y, 100.0, stamp=stamp)
         sel = (o.label & 0xFFFF) == Label.CAR
-        return set(zip(np.round(o.cx[sel], 2), np.round(o.cy[sel], 2), o.label[sel].tolist()))
+        return set(zip(np.round(o.cx[sel], 2), np.round(o.cy[sel], 2), o.label[sel].tolist(), strict=True))
 
     now, later = cars(0.0), cars(900.0)
     assert now and later and now != later
@@ -216,7 +217,7 @@ def test_night_is_darker_and_cameras_can_drop(nus: SyntheticDrive) -> None:
     night = nus.with_config(night_fraction=1.0, camera_drop=0.5).frame(2)
     assert night.extras["night"] and not day.extras["night"]
     mean = lambda img: np.asarray(Image.open(io.BytesIO(img.jpeg))).mean()  # noqa: E731
-    pairs = [(d, n) for d, n in zip(day.cameras, night.cameras) if d is not None and n is not None]
+    pairs = [(d, n) for d, n in zip(day.cameras, night.cameras, strict=True) if d is not None and n is not None]
     assert pairs and all(mean(n) < 0.7 * mean(d) for d, n in pairs)
     assert any(c is None for c in night.cameras) or all(c is None for c in day.cameras)
 
@@ -267,13 +268,14 @@ def test_nuscenes_bag_round_trip(nus: SyntheticDrive, tmp_path) -> None:
     for i, f in enumerate(back):
         ref = nus.frame(i)
         assert f.stamp == pytest.approx(ref.stamp, abs=1e-6)
+        assert f.pose is not None and ref.pose is not None
         np.testing.assert_allclose(f.pose, ref.pose, atol=1e-6)
         assert f.lidar_frame_id == "LIDAR_TOP"
         for name in ("x", "y", "z", "intensity", "ring", "label"):
             np.testing.assert_array_equal(f.cloud[name], ref.cloud[name])
         assert [c.jpeg if c else None for c in f.cameras] == [c.jpeg if c else None for c in ref.cameras]
     models = read_camera_models(tmp_path / "nus.bag", topics=NUSCENES_TOPICS)
-    for got, want in zip(models, nus.rig.cameras):
+    for got, want in zip(models, nus.rig.cameras, strict=True):
         assert got is not None and got.frame_id == want.frame_id
         np.testing.assert_allclose(got.base_T_cam, want.base_T_cam, atol=1e-9)
         np.testing.assert_allclose(got.K, want.K)

@@ -32,6 +32,7 @@ def test_the_cache_holds_the_inference_preprocessing_of_every_frame(bag, tmp_pat
         assert torch.allclose(images[i], want, atol=1e-5)
         rng = range_image(frame.xyz, height=8, width=144)
         assert np.allclose(ranges[i, 0].numpy(), rng, atol=0.05)
+        assert frame.pose is not None
         assert np.allclose(cache.poses[i], frame.pose)
 
 

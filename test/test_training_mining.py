@@ -5,8 +5,15 @@ import numpy as np
 import pytest
 import torch
 
-from lcpr_core.training import (MiningConfig, batch_triplet_loss, closest_positive, mine, negatives_inside_margin,
-                                split_samples, triplet_loss)
+from lcpr_core.training import (
+    MiningConfig,
+    batch_triplet_loss,
+    closest_positive,
+    mine,
+    negatives_inside_margin,
+    split_samples,
+    triplet_loss,
+)
 from training_fixtures import out_and_back
 
 

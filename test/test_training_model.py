@@ -22,6 +22,7 @@ def test_a_narrow_model_keeps_the_names_and_gives_unit_256_d_descriptors():
     torch.manual_seed(0)
     model = LCPR(width=0.25, num_cameras=2, image_size=(64, 128), range_size=(16, 128)).eval()
     assert list(model.state_dict()) == list(LCPR().state_dict())
+    assert isinstance(model.conv1_i, torch.nn.Conv2d) and isinstance(model.layer4_l[0].conv1, torch.nn.Conv2d)
     assert model.conv1_i.out_channels == 16 and model.layer4_l[0].conv1.out_channels == 128
     assert model.netvlad_i.cluster_weights.shape == (64, 32)
     images, ranges = torch.randn(3, 2, 3, 64, 128), torch.rand(3, 1, 16, 128) * 40

@@ -115,7 +115,8 @@ def test_a_plain_state_dict_file_loads_through_the_same_path(tmp_path: Path) -> 
 def test_a_pickle_that_would_run_code_is_refused_and_nothing_runs(tmp_path: Path, payload: str) -> None:
     marker = tmp_path / "ran"
     model = seeded_sequence_model()
-    model.extra = RunsShell(marker) if payload == "os.system" else Evaluates(marker)  # hidden in the module's dict
+    # hidden in the module's dict; torch types Module.__setattr__ for tensors and modules, any value is stored
+    model.extra = RunsShell(marker) if payload == "os.system" else Evaluates(marker)  # type: ignore[assignment]
     torch.save(model, tmp_path / "evil.pth")
     with pytest.raises(UnsafePickleError, match=r"refused global .*(system|eval)"):
         load_sequence_state_dict(tmp_path / "evil.pth")

@@ -53,7 +53,10 @@ def square_drive(laps: float = 1.5, side: float = 100.0, step: float = 2.0) -> n
     return np.c_[x, y, np.zeros_like(x)]
 
 
-def position_cache(pos: np.ndarray, *, lie_about: np.ndarray = np.zeros(0, np.int64)) -> FeatureCache:
+NO_LIARS = np.zeros(0, np.int64)  # read-only default of position_cache
+
+
+def position_cache(pos: np.ndarray, *, lie_about: np.ndarray = NO_LIARS) -> FeatureCache:
     n = len(pos)
     poses = np.tile(np.eye(4), (n, 1, 1))
     poses[:, :3, 3] = pos
@@ -91,11 +94,13 @@ def test_pairs_are_every_close_pair_far_apart_in_time_and_100_negatives_each() -
     pairs = evaluation_pairs(pos, queries, rng=np.random.default_rng(0))
     expected = {(int(q), j) for q in queries for j in range(len(pos))
                 if abs(q - j) > 50 and np.hypot(*(pos[q, :2] - pos[j, :2])) < 3.0}
-    got = {(int(q), int(s)) for q, s, p in zip(pairs.query, pairs.scan, pairs.positive) if p}
+    got = {(int(q), int(s)) for q, s, p in zip(pairs.query, pairs.scan, pairs.positive, strict=True) if p}
     assert got == expected
     negatives = ~pairs.positive
     assert negatives.sum() == 100 * len(expected) and (pairs.distance[negatives] > 20).all()
-    assert len(set(zip(pairs.query[negatives].tolist(), pairs.scan[negatives].tolist()))) == negatives.sum()
+    assert len(
+        set(zip(pairs.query[negatives].tolist(), pairs.scan[negatives].tolist(), strict=True))
+    ) == negatives.sum()
 
 
 def test_a_perfect_recogniser_scores_max_f1_one_and_finds_every_loop(oracle: Vseq2pcNet) -> None:

@@ -23,9 +23,11 @@ import numpy as np
 import pytest
 import rclpy
 from nav_msgs.msg import Odometry
+from rclpy.client import Client
 from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.publisher import Publisher
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
@@ -35,13 +37,14 @@ from lcpr_core.vseq2pc.sequence import sequence_table
 from lcpr_ros.errors import ConfigError, MapLoadError
 from lcpr_ros.harness import OutputListener, spinning, wait_until
 from msg_tools.camera_info import model_to_camera_info
+from msg_tools.frames import CameraModel
 from msg_tools.image import array_to_image
 from msg_tools.pointcloud import array_to_pointcloud2
 from msg_tools.synth import SynthConfig, SyntheticDrive
 from msg_tools.transforms import pose_to_odometry
 from vseq2pc_ros import inputs
-from vseq2pc_ros.sync import TIME_JUMPED
 from vseq2pc_ros.node import Vseq2pcNode
+from vseq2pc_ros.sync import TIME_JUMPED
 
 REPO = Path(__file__).resolve().parents[1]
 DOMAIN = random.randint(101, 200)
@@ -64,7 +67,7 @@ class Drive:
     depth: list[np.ndarray]  # float32 metres
     labels: list[np.ndarray]  # uint16
     clouds: list[np.ndarray]  # structured x, y, z, label: the labelled LiDAR scan
-    info: object  # CameraModel
+    info: CameraModel
     weights: tuple[Path, Path]  # sequence, descriptor
 
 
@@ -83,6 +86,7 @@ def drive() -> Drive:
         out.depth.append(image.depth.astype(np.float32))
         out.labels.append(image.labels.astype(np.uint16))
         cloud = np.zeros(len(frame.cloud), LABEL_CLOUD)
+        assert LABEL_CLOUD.names is not None
         for name in LABEL_CLOUD.names:
             cloud[name] = frame.cloud[name]
         out.clouds.append(cloud)
@@ -104,9 +108,9 @@ class Ros:
     node: Vseq2pcNode
     driver: Node
     listener: OutputListener
-    pubs: dict[str, object]
+    pubs: dict[str, Publisher]
     map_path: Path
-    info: object
+    info: CameraModel
 
     def odom(self, pose: np.ndarray, stamp: float) -> None:
         self.pubs["odom"].publish(pose_to_odometry(pose, stamp=stamp, msg_type=Odometry))
@@ -158,7 +162,10 @@ def publish_map_pass(ros: Ros, drive: Drive, start: float = T0) -> None:
     for i in range(FRAMES):
         ros.odom(drive.poses[i], start + i * DT)
         ros.cloud(cloud_msg(drive.clouds[i], start + i * DT))
-        assert wait_until(lambda: len(ros.node.map) == size + i + 1, WAIT), ros.node.health()
+
+        def added(i: int = i) -> bool:
+            return len(ros.node.map) == size + i + 1
+        assert wait_until(added, WAIT), ros.node.health()
 
 
 def camera_frames_handled(ros: Ros) -> int:
@@ -172,7 +179,10 @@ def publish_camera_pass(ros: Ros, drive: Drive, start: float) -> None:
         stamp = start + i * DT
         ros.odom(drive.poses[i], stamp)
         ros.camera(depth_msg(drive.depth[i], stamp), labels_msg(drive.labels[i], stamp), stamp)
-        assert wait_until(lambda: camera_frames_handled(ros) == handled + i + 1, WAIT), ros.node.health()
+
+        def taken(i: int = i) -> bool:
+            return camera_frames_handled(ros) == handled + i + 1
+        assert wait_until(taken, WAIT), ros.node.health()
 
 
 def test_camera_sequences_revisiting_the_map_are_matched_to_the_scans_at_their_poses(ros: Ros, drive: Drive) -> None:
@@ -188,7 +198,7 @@ def test_camera_sequences_revisiting_the_map_are_matched_to_the_scans_at_their_p
         assert len(rows) == 3 and [r["rank"] for r in rows] == [0, 1, 2]
         assert {"query_stamp", "match_stamp", "distance", "probability"} <= set(rows[0])
         assert rows[0]["query_id"] == q and rows[0]["distance"] == pytest.approx(1.0 - rows[0]["probability"])
-        assert all(a["distance"] <= b["distance"] for a, b in zip(rows, rows[1:]))
+        assert all(a["distance"] <= b["distance"] for a, b in zip(rows, rows[1:], strict=False))
         best.append(int(rows[0]["match_id"]))
     for q, (query_stamp, match_stamp) in enumerate(ros.listener.out.loops[:queries]):
         assert query_stamp == pytest.approx(T0 + REVISIT + q * DT)
@@ -261,11 +271,13 @@ def test_runtime_parameters_are_validated(ros: Ros) -> None:
 
 def test_the_map_is_saved_loaded_by_a_second_node_and_bad_files_refuse_the_start(ros: Ros, drive: Drive,
                                                                                  tmp_path: Path) -> None:
-    client = ros.driver.create_client(Trigger, "/vseq2pc/save_map")
+    client: Client = ros.driver.create_client(Trigger, "/vseq2pc/save_map")
     assert client.wait_for_service(timeout_sec=10)
     future = client.call_async(Trigger.Request())
     assert wait_until(future.done, 20)
-    assert future.result().success, future.result().message
+    saved = future.result()
+    assert saved is not None
+    assert saved.success, saved.message
     size = len(ros.node.map)
     second = Vseq2pcNode(context=ros.context, parameter_overrides=params(drive, **{
         "map.path": str(ros.map_path), "lidar_topic": f"{PREFIX}/other"}))

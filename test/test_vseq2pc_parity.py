@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import re
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -33,7 +34,9 @@ def test_both_models_have_the_released_parameter_names_and_shapes(keys):
 
 @pytest.mark.parametrize("ref_file", reference_sets(), ids=lambda p: p.stem)
 def test_features_descriptors_and_scores_match_the_released_code(ref_file: Path, keys, detweights):
-    seed = int(re.search(r"seed(\d+)", ref_file.stem).group(1))
+    found = re.search(r"seed(\d+)", ref_file.stem)
+    assert found is not None
+    seed = int(found.group(1))
     ref = np.load(ref_file)
     seq, desc = SequenceModel().eval(), DescriptorModel().eval()
     seq.load_state_dict(detweights.det_state_dict(keys["sequence_model"], seed))
@@ -50,7 +53,7 @@ def test_features_descriptors_and_scores_match_the_released_code(ref_file: Path,
         scores = desc.score(d_seq[:, None], d_slices)
         # The reference's "rolled" pairs query b with torch.roll(slices, 1, 0)[b].
         rolled = desc.score(d_seq[:, None], d_slices.roll(1, dims=0))
-    close = dict(atol=TOL, rtol=0)
+    close: dict[str, Any] = dict(atol=TOL, rtol=0)
     np.testing.assert_allclose(f_seq.numpy(), ref["sequence_feature"], **close)
     np.testing.assert_allclose(d_seq.numpy(), ref["sequence_descriptor"], **close)
     np.testing.assert_allclose(d_slices.numpy(), ref["slice_descriptors"], **close)

@@ -132,6 +132,7 @@ def test_the_straight_through_clamp_changes_the_gradients_and_not_the_values() -
         out = seq.train()(frames)
         out.sum().backward()
         outputs.append(out.detach())
+        assert seq.decoder.head.bias.grad is not None
         grads.append(float(seq.decoder.head.bias.grad.abs().sum()))
     assert torch.equal(outputs[0], outputs[1]) and float(outputs[0].abs().max()) == 0.0
     assert grads[0] == 0.0 and grads[1] > 0.0

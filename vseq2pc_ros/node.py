@@ -35,10 +35,10 @@ from lcpr_core.preprocess.structure import camera_feature, structure_feature
 from lcpr_core.vseq2pc import SequenceBuilder, Vseq2pcNet
 from lcpr_ros.diagnostics import DiagnosticsBuilder, Health
 from lcpr_ros.errors import ConfigError, InputRejected
-from lcpr_ros.poses import OdometryBuffer
-from lcpr_ros.qos import CANDIDATE_QOS, QOS_ADAPTED, SensorSubscription
 from lcpr_ros.mapstore import answer_save_request, save_under_lock
+from lcpr_ros.poses import OdometryBuffer
 from lcpr_ros.process import finish_and_save, run_node
+from lcpr_ros.qos import CANDIDATE_QOS, QOS_ADAPTED, SensorSubscription
 from lcpr_ros.ros_params import declare
 from lcpr_ros.stamps import NS_PER_S, StampOrder, stamp_ns
 from lcpr_ros.stats import Counts, RateMeter, WarnOnce, Window
@@ -93,7 +93,7 @@ def build_net(cfg: NodeConfig) -> Vseq2pcNet:
 class Vseq2pcNode(Node):
     """The ``vseq2pc`` node. Raises ConfigError / MapLoadError when it cannot start."""
 
-    def __init__(self, *, parameter_overrides: list[Parameter[Any]] | None = None, **kwargs: Any) -> None:
+    def __init__(self, *, parameter_overrides: list[Parameter] | None = None, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, parameter_overrides=parameter_overrides, **kwargs)
         self._leaves = all_leaves()
         self.settings: NodeConfig = settings_from(declare(self, self._leaves))

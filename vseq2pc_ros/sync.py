@@ -53,7 +53,9 @@ class ImagePairs:
         other = self._buffers[other_kind]
         best = None
         for i, (ns, _) in enumerate(other):
-            if abs(ns - stamp_ns) <= self.slop_ns and (best is None or abs(ns - stamp_ns) < abs(other[best][0] - stamp_ns)):
+            if abs(ns - stamp_ns) <= self.slop_ns and (
+                best is None or abs(ns - stamp_ns) < abs(other[best][0] - stamp_ns)
+            ):
                 best = i
         if best is None:
             mine = self._buffers[kind]

@@ -92,7 +92,7 @@ class DescriptorModel(nn.Module):
         pad = (self.pad, self.pad)
         residual, base = F.pad(f_seq - f_img, pad), F.pad(f_img, pad)
         means = []
-        for stage, stage_seq in zip(self._stages(), self._stages("_seq")):
+        for stage, stage_seq in zip(self._stages(), self._stages("_seq"), strict=True):
             residual = stage_seq(residual)
             base = stage(base) + residual
             means.append(base.mean(dim=2))

@@ -117,7 +117,7 @@ class LCPR(nn.Module):
             (self.layer4_i, self.layer4_l, self.fusion4),
         )
         for layer_i, layer_l, fusion in stages:
-            if layer_i is not None:
+            if layer_i is not None and layer_l is not None:  # both None at the first stage
                 cam, lid = layer_i(cam), layer_l(lid)
             cam_res, lid_res = fusion(cam, lid, n)
             cam, lid = cam + cam_res, lid + lid_res

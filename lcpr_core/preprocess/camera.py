@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import io
 from collections.abc import Sequence
-from typing import Union
 
 import numpy as np
 import torch
@@ -17,7 +16,7 @@ NUSCENES_CAMERAS = (
     "CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_FRONT_LEFT",
 )
 
-CameraInput = Union[np.ndarray, bytes, bytearray, memoryview, Image.Image]
+CameraInput = np.ndarray | bytes | bytearray | memoryview | Image.Image
 
 
 def decode_image(data: bytes | bytearray | memoryview, *, draft_size: tuple[int, int] | None = None) -> Image.Image:
@@ -59,7 +58,7 @@ def camera_tensor(
     """
     height, width = size
     pil = to_pil(image, draft_size=(width, height) if fast_decode else None)
-    pil = pil.resize((width, height), Image.BILINEAR)
+    pil = pil.resize((width, height), Image.Resampling.BILINEAR)
     x = torch.from_numpy(np.asarray(pil, dtype=np.uint8).copy()).permute(2, 0, 1).float().div(255)
     mean = torch.tensor(IMAGENET_MEAN).view(3, 1, 1)
     std = torch.tensor(IMAGENET_STD).view(3, 1, 1)

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -97,7 +98,7 @@ def range_image(
     pixel keeps its nearest point. Computed in float64 as the released code does.
     """
     base = lidar_preset(preset) if isinstance(preset, str) else preset
-    given = dict(yaw_offset_deg=yaw_offset_deg, min_xy=min_xy, fov_up_deg=fov_up_deg,
+    given: dict[str, Any] = dict(yaw_offset_deg=yaw_offset_deg, min_xy=min_xy, fov_up_deg=fov_up_deg,
                  fov_down_deg=fov_down_deg, height=height, width=width, max_range=max_range)
     cfg = dataclasses.replace(base, **{k: v for k, v in given.items() if v is not None})
     _check_config(cfg)

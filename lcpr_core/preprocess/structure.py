@@ -66,7 +66,7 @@ def structure_feature(points: np.ndarray, labels: np.ndarray, *, max_range: floa
     x, y, r, channel = x[keep], y[keep], r[keep], channel[keep]
     sector = np.floor((np.arctan2(y, x) + np.pi) * 180.0 / np.pi).astype(np.int64) % SECTORS
 
-    feature = np.full(len(CLASSES) * SECTORS, np.inf)
+    feature: np.ndarray = np.full(len(CLASSES) * SECTORS, np.inf)
     cell = channel * SECTORS + sector
     road = channel == ROAD_CHANNEL
     np.minimum.at(feature, cell[~road], r[~road])

@@ -140,7 +140,7 @@ def build_cache(
     }
     count, frames, without_pose = 0, 0, 0
     per_bag: list[int] = []
-    for group, (bag, stream) in enumerate(zip(bags, streams)):
+    for group, (bag, stream) in enumerate(zip(bags, streams, strict=True)):
         bar = _bar(len(stream), f"cache {Path(bag).name}", progress)
         first = count
         try:
@@ -188,7 +188,7 @@ def _camera_slots(cameras: Sequence[Any], inputs: InputConfig) -> tuple[np.ndarr
             continue
         from PIL import Image
 
-        out[k] = np.asarray(to_pil(data).resize((w, h), Image.BILINEAR), dtype=np.uint8)
+        out[k] = np.asarray(to_pil(data).resize((w, h), Image.Resampling.BILINEAR), dtype=np.uint8)
         present[k] = True
     return out, present
 

@@ -24,7 +24,7 @@ def plot_training_curve(history: Sequence[Mapping[str, Any]], path: str | os.Pat
     for key, style in (("recall@1", "o-"), ("recall@5", "s--"), ("recall@10", "^:")):
         pts = [(h["epoch"], h[key]) for h in history if key in h]
         if pts:
-            ax_rec.plot(*zip(*pts), style, label=key)
+            ax_rec.plot(*zip(*pts, strict=True), style, label=key)
     ax_rec.set(xlabel="epoch (0 = initialisation)", ylabel="validation recall", title="validation", ylim=(0, 1.02))
     ax_rec.grid(alpha=0.3)
     ax_rec.legend(loc="lower right")

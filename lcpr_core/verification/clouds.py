@@ -117,5 +117,5 @@ class CloudStore:
         store._ids.extend(ids.astype(np.int64))
         store._counts.extend(counts.astype(np.int64))
         starts = np.concatenate([[0], np.cumsum(counts)[:-1]]) if len(counts) else np.zeros(0, np.int64)
-        store._rows = {int(i): (int(s), int(c)) for i, s, c in zip(ids, starts, counts)}
+        store._rows = {int(i): (int(s), int(c)) for i, s, c in zip(ids, starts, counts, strict=True)}
         return store

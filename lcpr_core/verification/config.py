@@ -96,9 +96,10 @@ class VerifierConfig:
     def __post_init__(self) -> None:
         if self.registration not in REGISTRATIONS:
             raise VerificationError(f"verify.registration={self.registration!r}; accepted: {', '.join(REGISTRATIONS)}")
-        _positive(self, "num_threads", "min_points", "yaw_hypotheses", "bev_cell", "bev_extent", "registrations", "coarse_voxel", "coarse_points",
-                  "coarse_distance", "fine_distance", "coarse_iterations", "max_iterations", "inlier_distance", "plane_distance", "max_rmse",
-                  "max_correction_m", "max_correction_deg", "covariance_inflation")
+        _positive(self, "num_threads", "min_points", "yaw_hypotheses", "bev_cell", "bev_extent", "registrations",
+                  "coarse_voxel", "coarse_points", "coarse_distance", "fine_distance", "coarse_iterations",
+                  "max_iterations", "inlier_distance", "plane_distance", "max_rmse", "max_correction_m",
+                  "max_correction_deg", "covariance_inflation")
         _non_negative(self, "coarse_accept", "early_reject", "min_constraint", "min_sigma_m", "min_sigma_deg")
         if not 0.0 <= self.min_fitness <= 1.0:
             raise VerificationError(f"verify.min_fitness={self.min_fitness!r}; accepted: 0 <= min_fitness <= 1")

@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 import small_gicp
@@ -193,7 +194,8 @@ class GeometricVerifier:
 
     def _coarse(self, query: PreparedCloud, match: PreparedCloud, T0: np.ndarray) -> tuple[float, np.ndarray,
                                                                                            np.ndarray]:
-        """(overlap of the full clouds at the result, pose, start) of a registration of the coarse clouds from ``T0``."""
+        """(overlap of the full clouds at the result, pose, start) of a registration of the coarse clouds
+        from ``T0``."""
         cfg = self.config
         assert query.coarse is not None and match.coarse is not None
         r = small_gicp.align(match.coarse, query.coarse, match.coarse_tree, init_T_target_source=T0,
@@ -247,9 +249,9 @@ class GeometricVerifier:
         correction_deg = float(rotation_angle_deg(delta[:3, :3]))
         constraint = best.constraint
         covariance = self._covariance(best)
-        common = dict(match_T_query=best.T, fitness=best.fitness, rmse=best.rmse, covariance=covariance,
-                      correction_m=correction_m, correction_deg=correction_deg, constraint=constraint,
-                      initial=best.initial)
+        common: dict[str, Any] = dict(
+            match_T_query=best.T, fitness=best.fitness, rmse=best.rmse, covariance=covariance,
+            correction_m=correction_m, correction_deg=correction_deg, constraint=constraint, initial=best.initial)
         reason = ACCEPTED
         if not np.isfinite(best.T).all():
             reason = "failed"
@@ -287,6 +289,7 @@ def _transform(points: np.ndarray, T: np.ndarray) -> np.ndarray:
 
 def _near(points: np.ndarray, target: PreparedCloud, cfg: VerifierConfig) -> tuple[np.ndarray, np.ndarray]:
     """(nearest target row of each point, whether it lies within ``inlier_distance``)."""
+    assert target.tree is not None  # a cloud without a tree (too few points) is refused before registration
     idx, d2 = target.tree.batch_nearest_neighbor_search(points, num_threads=cfg.num_threads)
     idx, d2 = np.asarray(idx, np.int64), np.asarray(d2, np.float64)
     return idx, (idx >= 0) & (d2 <= cfg.inlier_distance ** 2)

@@ -138,7 +138,7 @@ def _rebuild_tensor(storage: Any, offset: Any, size: Any, stride: Any, requires_
     numel = storage.flat.numel()
     if any(s == 0 for s in shape):
         return torch.empty(shape, dtype=storage.flat.dtype)
-    last = offset + sum((s - 1) * st for s, st in zip(shape, steps))
+    last = offset + sum((s - 1) * st for s, st in zip(shape, steps, strict=True))
     if any(st < 0 for st in steps) or last >= numel:
         raise CheckpointError(f"tensor of size {shape}, stride {steps}, offset {offset} reaches element {last} "
                               f"of a storage of {numel}")

@@ -129,10 +129,12 @@ def cache_from_frames(frames: Iterable[SensorFrame], *, K: np.ndarray, lidar_T_c
                              "SemanticKITTI labels ('label')")
         lidars.append(structure_feature(frame.xyz, np.asarray(frame.cloud["label"])))
         image = frame.cameras[camera] if camera < len(frame.cameras) else None
-        ok = image is not None and image.depth is not None and image.labels is not None
-        cams.append(camera_feature(image.depth, image.labels, K, lidar_T_cam) if ok else  # type: ignore[union-attr]
-                    np.zeros((12, 90), np.float32))
-        valid.append(ok)
+        if image is not None and image.depth is not None and image.labels is not None:
+            cams.append(camera_feature(image.depth, image.labels, K, lidar_T_cam))
+            valid.append(True)
+        else:
+            cams.append(np.zeros((12, 90), np.float32))
+            valid.append(False)
         poses.append(np.asarray(frame.pose, np.float64))
         stamps.append(frame.stamp)
     if not stamps:

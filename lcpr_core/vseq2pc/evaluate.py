@@ -209,7 +209,8 @@ def table(results: Sequence[MethodEval], *, n_values: Sequence[int]) -> str:
                     + [f"{r.recall_at[n]:.3f}" if n in r.recall_at else "-" for n in n_values]
                     + [str(r.num_loop_queries), f"{r.seconds:.1f}"])
     widths = [max(len(row[i]) for row in rows) for i in range(len(heads))]
-    return "\n".join("  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths)))
+    return "\n".join("  ".join(c.ljust(w) if i == 0 else c.rjust(w)
+                               for i, (c, w) in enumerate(zip(row, widths, strict=True)))
                      for row in rows)
 
 

@@ -27,6 +27,7 @@ from typing import Any
 import faiss
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 
 from ..atomic import atomic_path
 from ..errors import InputShapeError, MapError, MapSchemaError
@@ -147,7 +148,7 @@ class ScanDatabase:
         return flat.reshape(n, SLICES, DESCRIPTOR_DIM)
 
     # ------------------------------------------------------------------ adding
-    def add(self, descriptors: np.ndarray, *, stamps: float | np.ndarray, poses: np.ndarray | None = None,
+    def add(self, descriptors: np.ndarray, *, stamps: ArrayLike, poses: np.ndarray | None = None,
             ids: int | np.ndarray | None = None) -> np.ndarray:
         """Append (8, 288) or (n, 8, 288) slice descriptors; returns their (n,) ids.
 
@@ -167,9 +168,13 @@ class ScanDatabase:
         t = np.asarray(stamps, np.float64).reshape(-1)
         if t.shape != (n,) or not np.isfinite(t).all():
             raise MapError(f"stamps {np.asarray(stamps).shape} do not fit {n} scans; expected ({n},) finite seconds")
-        p = np.full((n, 4, 4), np.nan) if poses is None else np.asarray(poses, np.float64).reshape(-1, 4, 4)
-        if p.shape != (n, 4, 4):
-            raise MapError(f"poses of shape {np.shape(poses)} do not fit {n} scans; expected (4, 4) or ({n}, 4, 4)")
+        if poses is None:
+            p = np.full((n, 4, 4), np.nan)
+        else:
+            p = np.asarray(poses, np.float64).reshape(-1, 4, 4)
+            if p.shape != (n, 4, 4):
+                raise MapError(f"poses of shape {np.shape(poses)} do not fit {n} scans; "
+                               f"expected (4, 4) or ({n}, 4, 4)")
         if ids is None:
             new_ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
         else:
@@ -265,7 +270,7 @@ class ScanDatabase:
         """The m allowed scans with the smallest min-slice L2 distance to q (sorted by row)."""
         if isinstance(allowed, slice):
             end = allowed.indices(len(self))[1]
-            sel = None if end == len(self) else faiss.IDSelectorRange(0, end * SLICES)
+            sel: faiss.IDSelector | None = None if end == len(self) else faiss.IDSelectorRange(0, end * SLICES)
             bitmap = None
         else:
             mask = np.zeros(len(self) * SLICES, bool)
@@ -273,7 +278,8 @@ class ScanDatabase:
             bitmap = np.packbits(mask, bitorder="little")  # kept alive while the selector is used
             sel = faiss.IDSelectorBitmap(len(mask), faiss.swig_ptr(bitmap))
         kk = min(m * SLICES, len(rows) * SLICES)  # m * 8 slices always cover at least m scans
-        params = None if sel is None else faiss.SearchParameters(sel=sel)
+        # faiss wraps every SearchParameters* __init__ to take fields as keywords; its stubs do not say so
+        params = None if sel is None else faiss.SearchParameters(sel=sel)  # type: ignore[call-arg]
         _, hits = self._index.search(q[None], kk, params=params)
         del bitmap
         scans = hits[0][hits[0] >= 0] // SLICES
@@ -301,8 +307,9 @@ class ScanDatabase:
         """Write the database to one .npz (no pickle), atomically: on failure the old file stays."""
         header = {"format": _FORMAT, "schema_version": DATABASE_SCHEMA_VERSION, "slices": SLICES,
                   "dim": DESCRIPTOR_DIM, "count": len(self), "weights_id": self.weights_id}
-        arrays = {"header": np.array(json.dumps(header)), "descriptors": self._view(), "ids": self._ids.view(),
-                  "stamps": self._stamps.view(), "poses": self._poses.view()}
+        # Any: np.savez's keywords also name its own allow_pickle flag
+        arrays: dict[str, Any] = {"header": np.array(json.dumps(header)), "descriptors": self._view(),
+                                  "ids": self._ids.view(), "stamps": self._stamps.view(), "poses": self._poses.view()}
         try:
             with atomic_path(path) as tmp, open(tmp, "wb") as fh:
                 np.savez(fh, **arrays)

@@ -13,6 +13,7 @@ import math
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 
@@ -84,7 +85,7 @@ class SequenceConfig:
 
     def __post_init__(self) -> None:
         offs = tuple(self.offsets)
-        if not offs or any(not (o > 0) for o in offs) or any(b <= a for a, b in zip(offs, offs[1:])):
+        if not offs or any(not (o > 0) for o in offs) or any(b <= a for a, b in zip(offs, offs[1:], strict=False)):
             raise ValueError(f"offsets={offs}; expected ascending positive metres, e.g. (5.0, 10.0, 15.0)")
         if not self.min_query_spacing_m >= 0:
             raise ValueError(f"min_query_spacing_m={self.min_query_spacing_m}; expected metres >= 0")
@@ -184,7 +185,10 @@ class SequenceBuilder:
             while len(self._pending) > self.config.max_pending:
                 self._pending.popleft()
                 self.dropped += 1
-        return self._complete() if f is not None else self._trim() or None
+        if f is None:
+            self._trim()
+            return None
+        return self._complete()
 
     def push_camera(self, depth: np.ndarray | None, labels: np.ndarray | None, K: np.ndarray,
                     lidar_T_cam: np.ndarray, *, stamp: float, pose: np.ndarray,
@@ -207,8 +211,10 @@ class SequenceBuilder:
         self._trim()
         if not done:
             return None
+        # done holds frames of valid only: their features are not None
+        features = [np.stack([cast(np.ndarray, fr.feature) for fr in seq]) for seq in done]
         return SequenceBatch(
-            frames=np.stack([np.stack([fr.feature for fr in seq]) for seq in done]).astype(np.float32),
+            frames=np.stack(features).astype(np.float32),
             indices=np.array([[fr.index for fr in seq] for seq in done], np.int64),
             stamps=np.array([[fr.stamp for fr in seq] for seq in done], np.float64),
             poses=np.stack([np.stack([fr.pose for fr in seq]) for seq in done]),

@@ -167,11 +167,11 @@ class TrainData:
             return drives[0]
         starts = np.cumsum([0] + [len(d.positions) for d in drives[:-1]])
         positions = [d.positions + np.array([k * DRIVE_SPACING_M, 0.0, 0.0]) for k, d in enumerate(drives)]
-        sequences = [np.where(d.sequences >= 0, d.sequences + s, -1) for d, s in zip(drives, starts)]
+        sequences = [np.where(d.sequences >= 0, d.sequences + s, -1) for d, s in zip(drives, starts, strict=True)]
         return cls(torch.cat([d.camera for d in drives]), torch.cat([d.lidar for d in drives]),
                    np.concatenate(positions), np.concatenate(sequences),
-                   np.concatenate([d.queries + s for d, s in zip(drives, starts)]),
-                   np.concatenate([d.scans + s for d, s in zip(drives, starts)]))
+                   np.concatenate([d.queries + s for d, s in zip(drives, starts, strict=True)]),
+                   np.concatenate([d.scans + s for d, s in zip(drives, starts, strict=True)]))
 
     def frames(self, queries: np.ndarray) -> torch.Tensor:
         """B x 4 x 12 x 90 camera-feature sequences of the query frames."""

@@ -141,8 +141,8 @@ class FrameStream:
             self.stats.odometry_topic = bool(t.odom) and check_topic(types, t.odom, (ODOMETRY,), required=False)
 
             tracks: dict[str, MonotonicFilter] = {t.lidar: MonotonicFilter.new()}
-            for topic in (*t.cameras, *[x for x, on in zip(t.depth, depth_on) if on],
-                          *[x for x, on in zip(t.labels, labels_on) if on]):
+            for topic in (*t.cameras, *[x for x, on in zip(t.depth, depth_on, strict=True) if on],
+                          *[x for x, on in zip(t.labels, labels_on, strict=True) if on]):
                 tracks[topic] = MonotonicFilter.new()
             odom = MonotonicFilter.new()
             poses: list[np.ndarray] = []
@@ -188,7 +188,8 @@ class FrameStream:
         self.stats.no_pose = sum(p is None for p in self._poses)
 
     def _pose_for(self, stamp_ns: int) -> np.ndarray | None:
-        return pose_at(self._odom_stamps, self._odom_poses, stamp_ns, slop_ns=self._slop_ns, max_gap_ns=self._max_gap_ns)
+        return pose_at(self._odom_stamps, self._odom_poses, stamp_ns, slop_ns=self._slop_ns,
+                       max_gap_ns=self._max_gap_ns)
 
     # -- pass 2 ----------------------------------------------------------------------------
     def _wanted(self) -> dict[str, dict[int, list[_Slot]]]:

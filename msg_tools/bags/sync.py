@@ -107,7 +107,7 @@ def plan_frames(
     plans: list[FramePlan] = []
     dropped = 0
     missing = [0] * len(cameras)
-    for n, (ordinal, stamp) in enumerate(zip(cloud_ordinals.tolist(), cloud_stamps.tolist())):
+    for n, (ordinal, stamp) in enumerate(zip(cloud_ordinals.tolist(), cloud_stamps.tolist(), strict=True)):
         picks = [int(m[n]) for m in matches]
         if sum(p >= 0 for p in picks) < min_cameras:
             dropped += 1

@@ -132,7 +132,9 @@ class BagWriter:
     def __enter__(self) -> BagWriter:
         return self.open()
 
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None) -> None:
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
         if exc_type is None:
             self.close()
         else:
@@ -283,5 +285,6 @@ class BagWriter:
 
 def _topic_at(names: Sequence[str], index: int, what: str) -> str:
     if index >= len(names):
-        raise BagTopicError(f"camera {index} has {what} but topics name only {len(names)} {what} topic(s): {list(names)}")
+        raise BagTopicError(f"camera {index} has {what} but topics name only {len(names)} {what} topic(s): "
+                            f"{list(names)}")
     return names[index]

@@ -11,7 +11,8 @@ from ..errors import MsgToolsError
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="msg_tools_baginfo", description="Topics, types, counts and duration of rosbag2 folders.")
+    parser = argparse.ArgumentParser(prog="msg_tools_baginfo",
+                                     description="Topics, types, counts and duration of rosbag2 folders.")
     parser.add_argument("bags", nargs="+", type=Path, help="rosbag2 folders (sqlite3 or mcap)")
     args = parser.parse_args(argv)
     status = 0

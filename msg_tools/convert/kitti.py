@@ -90,7 +90,7 @@ def project_scan(
     chosen = order[first]
     depth = np.zeros(model.height * model.width, dtype=np.float32)
     depth[pixel[chosen]] = depth_values[chosen]
-    label_img = None
+    label_img: np.ndarray | None = None
     if labels is not None:
         label_img = np.zeros(model.height * model.width, dtype=np.uint32)
         label_img[pixel[chosen]] = labels[front][inside][chosen]

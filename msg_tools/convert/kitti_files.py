@@ -143,7 +143,8 @@ class KittiSequence:
             raise DatasetError(f"{velodyne} holds no *.bin scans")
         missing = [s for s in stems if not (images / f"{s}.png").is_file()]
         if missing:
-            raise DatasetError(f"scans without an image_2/<name>.png: {missing[:5]}{' ...' if len(missing) > 5 else ''}")
+            raise DatasetError(f"scans without an image_2/<name>.png: "
+                               f"{missing[:5]}{' ...' if len(missing) > 5 else ''}")
         times = read_times_ns(root / "times.txt")
         if len(times) != len(stems):
             raise DatasetError(f"{root / 'times.txt'} has {len(times)} lines for {len(stems)} scans")

@@ -72,7 +72,8 @@ def read_lidar(path: Path) -> np.ndarray:
     ring = points[:, 4]
     if np.any(ring != np.round(ring)) or np.any(ring < 0) or np.any(ring > np.iinfo(np.uint16).max):
         raise DatasetError(f"{path} has ring values that are not whole numbers in [0, 65535]")
-    cloud = np.zeros(len(points), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4"), ("ring", "<u2")])
+    cloud = np.zeros(len(points),
+                     dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4"), ("ring", "<u2")])
     for column, name in enumerate(("x", "y", "z", "intensity")):
         cloud[name] = points[:, column]
     cloud["ring"] = ring.astype(np.uint16)
@@ -113,7 +114,7 @@ class _SceneWriter:
             models.append(None if sd is None else self.camera_model(sd, channel))
         if first_of_scene:
             self._write_calibration(models, lidar, _us_stamp(min(r["timestamp"] for r in frames.values())))
-        for index, (channel, model) in enumerate(zip(NUSCENES_CAMERAS, models)):
+        for index, (channel, model) in enumerate(zip(NUSCENES_CAMERAS, models, strict=True)):
             if model is None:
                 self.report.missing_cameras += 1
                 continue
@@ -180,7 +181,8 @@ def convert_nuscenes(
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="msg_tools_nuscenes2bag", description=DESCRIPTION)
     parser.add_argument("--dataroot", required=True, type=Path, help="nuScenes root (holds samples/ and <version>/)")
-    parser.add_argument("--version", default="v1.0-trainval", help="table folder, e.g. v1.0-mini (default: %(default)s)")
+    parser.add_argument("--version", default="v1.0-trainval",
+                        help="table folder, e.g. v1.0-mini (default: %(default)s)")
     parser.add_argument("--scene", action="append", default=[], help="scene name, e.g. scene-0061 (repeatable)")
     parser.add_argument("--location", action="append", default=[],
                         help="every scene of a location, e.g. boston-seaport (repeatable)")

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 
 from ..bags import BagWriter
@@ -25,7 +25,7 @@ class WriteReport:
 
 
 def write_bag(drive: SyntheticDrive, out: str | os.PathLike[str], *, workers: int = 1, storage: str = "sqlite3",
-              overwrite: bool = False, wrap: Callable[[Iterator[SensorFrame]], Iterator[SensorFrame]] | None = None
+              overwrite: bool = False, wrap: Callable[[Iterator[SensorFrame]], Iterable[SensorFrame]] | None = None
               ) -> WriteReport:
     """Render every frame of ``drive`` and write it, with camera infos, odometry and /tf_static.
 
@@ -34,9 +34,8 @@ def write_bag(drive: SyntheticDrive, out: str | os.PathLike[str], *, workers: in
     rig = drive.rig
     report = WriteReport()
     start = time.perf_counter()
-    frames = drive.frames(workers=workers)
-    if wrap is not None:
-        frames = wrap(frames)
+    rendered = drive.frames(workers=workers)
+    frames: Iterable[SensorFrame] = rendered if wrap is None else wrap(rendered)
     with BagWriter(out, storage=storage, overwrite=overwrite) as writer:  # type: ignore[arg-type]
         writer.write_static_transforms(rig.cameras, rig.lidar.frame_id, rig.lidar.base_T_lidar,
                                        stamp=float(drive.keyframes.stamps[0]))

@@ -152,13 +152,13 @@ def render_camera(objects: Objects, ground: GroundMap, cam: CameraModel, world_T
         face = s.o_face
         wall_l = (s.o_nx * sun[0] + s.o_ny * sun[1]).astype(np.float32)
         ndotl = np.where(face == TOP, sun[2], np.where(face == BOTTOM, np.float32(-0.3), wall_l))
-        irr = np.float32(light.ambient) * np.where(face == BOTTOM, np.float32(0.55), np.float32(1.0))
-        irr += np.float32(light.sun_strength) * np.maximum(ndotl, np.float32(0.0))
+        o_irr = np.float32(light.ambient) * np.where(face == BOTTOM, np.float32(0.55), np.float32(1.0))
+        o_irr += np.float32(light.sun_strength) * np.maximum(ndotl, np.float32(0.0))
         if light.night:
             z = s.o_z.astype(np.float32)
-            irr += np.float32(light.lamps) * ground.light(s.o_x, s.o_y) * np.exp(-z / np.float32(7.0))
-            irr += headlight(ou, t) * np.exp(-np.maximum(z - 1.5, 0.0) / np.float32(1.5))
-        col = look.albedo * irr[:, None]
+            o_irr += np.float32(light.lamps) * ground.light(s.o_x, s.o_y) * np.exp(-z / np.float32(7.0))
+            o_irr += headlight(ou, t) * np.exp(-np.maximum(z - 1.5, 0.0) / np.float32(1.5))
+        col = look.albedo * o_irr[:, None]
         if look.emissive is not None:
             col += look.emissive
         img[s.o_pix] = haze(col, t)

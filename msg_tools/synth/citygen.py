@@ -7,7 +7,8 @@ import numpy as np
 
 from . import ground as g
 from .hashing import rng_for
-from .props import BUILDING as RESERVED, Placer
+from .props import BUILDING as RESERVED
+from .props import Placer
 from .route import Path, StreetGraph, StreetSpec
 from .world import ParkingSlots, World
 
@@ -288,7 +289,7 @@ def path_city(path: Path, *, seed: int, config: CityConfig | None = None, max_pi
     pts = path.xy[idx]
     road_codes = (g.ROAD, g.ROAD_EDGE, g.MARK_WHITE, g.MARK_YELLOW)
     s_acc = 0.0
-    for a, b in zip(pts[:-1], pts[1:]):
+    for a, b in zip(pts[:-1], pts[1:], strict=True):
         length = float(np.hypot(*(b - a)))
         n = max(int(np.ceil(length / max_piece)), 1)
         for k in range(n):

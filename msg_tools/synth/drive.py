@@ -8,6 +8,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path as FsPath
+from typing import Any
 
 import numpy as np
 
@@ -17,8 +18,18 @@ from .citygen import CityConfig, grid_city, path_city
 from .hashing import hash_uniform, rng_for
 from .lidar import LidarNoise, render_lidar
 from .rigs import BASE_HEIGHT, Rig, check_level, make_rig, pose_matrix
-from .route import (Keyframes, Path, RevisitStats, change_lanes, grid_path, load_kitti_path, make_street_graph,
-                    plan_grid_nodes, revisit_stats, sample_keyframes)
+from .route import (
+    Keyframes,
+    Path,
+    RevisitStats,
+    change_lanes,
+    grid_path,
+    load_kitti_path,
+    make_street_graph,
+    plan_grid_nodes,
+    revisit_stats,
+    sample_keyframes,
+)
 from .world import World
 
 ROUTES = ("grid", "kitti00")
@@ -208,7 +219,7 @@ class SyntheticDrive:
         k = self.keyframes
         return revisit_stats(k.xy, k.yaw, k.stamps, radius=radius, min_gap_s=min_gap_s)
 
-    def with_config(self, **changes: object) -> SyntheticDrive:
+    def with_config(self, **changes: Any) -> SyntheticDrive:
         """The same city and route with other rendering options (noise, lighting, frames, image size...).
 
         Route and seed changes are not applied to the city or the path (they are reused as they are).

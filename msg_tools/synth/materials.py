@@ -72,7 +72,7 @@ def object_look(objects: Objects, s: Surfaces, *, night: bool, want_color: bool 
             wj = np.floor(row_f[w]).astype(np.int64) + wseed * 101 + np.where(shop[w], 500, 0)
             h = table_uniform(wi, wj)
             albedo[sel[w]] = WINDOW_DAY[None, :] * (0.7 + 1.6 * h[:, None])
-            if night:
+            if emissive is not None:  # night (colours are wanted here)
                 lit = table_uniform(wi + 511, wj + 257) < np.where(shop[w], 0.6, 0.3)
                 emissive[sel[w[lit]]] = WINDOW_LIT * (0.35 + 0.45 * h[lit, None])
 
@@ -115,7 +115,7 @@ def object_look(objects: Objects, s: Surfaces, *, night: bool, want_color: bool 
             oi = o[sel]
             bars = (_frac(a[sel] / objects.params[oi, 0]) < 0.2) | (z[sel] > objects.z1[oi] - 0.06)
             albedo[sel[~bars]] = albedo[sel[~bars]] * 0.5 + 0.2
-        if night:
+        if emissive is not None:  # night (colours are wanted here)
             sel = np.nonzero((m == Mat.LAMP) & (face != TOP))[0]
             emissive[sel] = LAMP_LIT * 1.5
     return ObjectLook(albedo=albedo, emissive=emissive, glass=glass)

@@ -1,11 +1,13 @@
 """Placing buildings and street furniture: off the streets, apart from each other, seeded."""
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from . import ground as g
 from .labels import Label, Mat
-from .world import ObjectsBuilder
+from .world import ObjectsBuilder, as_rgb
 
 FACADE_COLORS = np.array([
     (0.76, 0.70, 0.58), (0.55, 0.27, 0.20), (0.45, 0.22, 0.17), (0.60, 0.60, 0.58), (0.85, 0.84, 0.80),
@@ -109,13 +111,13 @@ class Placer:
         floor_h = float(rng.uniform(2.9, 3.8))
         height = storeys * floor_h + float(rng.uniform(0.4, 1.2))
         base = FACADE_COLORS[int(rng.integers(len(FACADE_COLORS)))]
-        color = tuple(float(c) for c in np.clip(base + rng.uniform(-0.05, 0.05, 3), 0.05, 0.95))
+        color = as_rgb(np.clip(base + rng.uniform(-0.05, 0.05, 3), 0.05, 0.95))
         style = float(rng.choice([0, 0, 0, 1, 2, 2]))  # 0 punched windows, 1 ribbon windows, 2 shop front
         params = (float(rng.uniform(2.2, 4.2)), floor_h, float(rng.uniform(0.35, 0.7)), float(rng.uniform(0.4, 0.65)),
                   float(rng.uniform(3.5, 4.8)) if style == 2 else floor_h, style)
         mat = Mat.WALL if rng.uniform() < 0.08 else Mat.FACADE
         refl = float(rng.uniform(0.2, 0.45))
-        kw = dict(label=int(Label.BUILDING), mat=mat, color=color, params=params, seed=bid, refl=refl)
+        kw: dict[str, Any] = dict(label=int(Label.BUILDING), mat=mat, color=color, params=params, seed=bid, refl=refl)
         self.objects.box(cx, cy, hx, hy, yaw, 0.0, height, **kw)
         self.mark(cx, cy, hx, hy, yaw, BUILDING)
         c, s = np.cos(yaw), np.sin(yaw)
@@ -149,7 +151,7 @@ class Placer:
         z0 = float(rng.uniform(2.4, 3.4))
         z1 = z0 + float(rng.uniform(max(2.0, r), 2.5 * r + 1.5))
         leaf = FOLIAGE_COLORS[int(rng.integers(len(FOLIAGE_COLORS)))] * rng.uniform(0.85, 1.15)
-        color = tuple(float(c) for c in leaf)
+        color = as_rgb(leaf)
         self.count += 1
         self.objects.cylinder(x, y, trunk_r, 0.0, z0 + 0.6, label=int(Label.TRUNK), mat=Mat.TRUNK,
                               color=(0.28, 0.2, 0.14), seed=self.count, refl=0.25)
@@ -163,7 +165,7 @@ class Placer:
             return False
         h = float(rng.uniform(6.5, 9.0))
         self.count += 1
-        kw = dict(label=int(Label.POLE), seed=self.count, refl=0.45)
+        kw: dict[str, Any] = dict(label=int(Label.POLE), seed=self.count, refl=0.45)
         self.objects.cylinder(x, y, 0.11, 0.0, h, mat=Mat.POLE, color=(0.42, 0.43, 0.45), **kw)
         hx, hy = x + 1.3 * np.cos(to_road), y + 1.3 * np.sin(to_road)
         self.objects.box(hx, hy, 0.75, 0.16, to_road, h - 0.3, h, mat=Mat.LAMP, color=(0.5, 0.5, 0.52), **kw)
@@ -179,7 +181,7 @@ class Placer:
         self.count += 1
         self.objects.cylinder(x, y, 0.04, 0.0, z + size * 0.9, label=int(Label.POLE), mat=Mat.POLE,
                               color=(0.55, 0.56, 0.58), seed=self.count, refl=0.45)
-        color = tuple(float(c) for c in SIGN_COLORS[int(rng.integers(len(SIGN_COLORS)))])
+        color = as_rgb(SIGN_COLORS[int(rng.integers(len(SIGN_COLORS)))])
         self.objects.box(x + 0.06 * np.cos(facing), y + 0.06 * np.sin(facing), 0.03, size / 2, facing, z, z + size,
                          label=int(Label.TRAFFIC_SIGN), mat=Mat.SIGN, color=color, params=(size,), seed=self.count,
                          refl=0.95)

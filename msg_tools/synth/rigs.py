@@ -119,8 +119,8 @@ def make_rig(name: str, *, image_size: tuple[int, int] | None = None) -> Rig:
         if w < 16 or h < 16:
             raise ValueError(f"image size {w}x{h}; both sides must be at least 16 pixels")
     if name == "nuscenes":
-        return nuscenes_rig(**({} if image_size is None else {"image_size": image_size}))
-    return kitti_rig(**({} if image_size is None else {"image_size": image_size}))
+        return nuscenes_rig() if image_size is None else nuscenes_rig(image_size=image_size)
+    return kitti_rig() if image_size is None else kitti_rig(image_size=image_size)
 
 
 def check_level(T: np.ndarray, what: str, *, optical: bool) -> float:

@@ -190,9 +190,10 @@ def plan_grid_nodes(graph: StreetGraph, *, length_m: float, seed: int, min_age_m
             for k in rng.permutation(old)[:8]:  # of a few old stretches, the one reached soonest
                 stretch = nodes[k:k + m + 1][::-1] if opposite else nodes[k:k + m + 1]
                 approach = _directed_shortest(graph, (u, v), (stretch[0], stretch[1]))
-                cost = sum(graph.length(a, b) for a, b in zip([v] + approach[:-1], approach))
+                cost = sum(graph.length(a, b) for a, b in zip([v] + approach[:-1], approach, strict=False))
                 if best is None or cost < best[0]:
                     best = (cost, approach + stretch[2:])
+            assert best is not None  # old is not empty in this branch
             step = best[1]
             opposite = not opposite
             explore_left = int(rng.integers(0, 2))
@@ -218,9 +219,9 @@ def grid_path(graph: StreetGraph, nodes: list[Node], *, seed: int, speed: float 
     rng = rng_for(seed, 3)
     pieces: list[np.ndarray] = []
     lane = 0
-    dirs = [graph.pos(b) - graph.pos(a) for a, b in zip(nodes[:-1], nodes[1:])]
+    dirs = [graph.pos(b) - graph.pos(a) for a, b in zip(nodes[:-1], nodes[1:], strict=True)]
     dirs = [d / np.hypot(*d) for d in dirs]
-    for k, (a, b) in enumerate(zip(nodes[:-1], nodes[1:])):
+    for k, (a, b) in enumerate(zip(nodes[:-1], nodes[1:], strict=True)):
         spec = graph.spec(a, b)
         pa, pb = graph.pos(a), graph.pos(b)
         length = float(np.hypot(*(pb - pa)))

@@ -6,6 +6,7 @@ come from the generators in :mod:`citygen`; parked cars depend on the time of th
 """
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field, fields
 
 import numpy as np
@@ -14,6 +15,12 @@ from .hashing import hash_u64, hash_uniform
 from .labels import INSTANCE_SHIFT, Label, Mat
 
 N_PARAMS = 6  # material parameters per object (meaning depends on the material)
+
+
+def as_rgb(values: Iterable[float]) -> tuple[float, float, float]:
+    """A colour row (numpy array, list) -> the (r, g, b) float tuple :class:`ObjectsBuilder` takes."""
+    r, g, b = (float(v) for v in values)
+    return r, g, b
 
 
 @dataclass
@@ -85,7 +92,7 @@ class ObjectsBuilder:
 
     def build(self) -> Objects:
         n = len(self.rows)
-        cols = list(zip(*self.rows)) if n else [()] * 16
+        cols = list(zip(*self.rows, strict=True)) if n else [()] * 16
         params = np.zeros((n, N_PARAMS), dtype=np.float32)
         for i, p in enumerate(cols[13]):
             params[i, :len(p)] = p
@@ -203,7 +210,7 @@ class World:
     def __post_init__(self) -> None:
         self.index = SpatialIndex(self.objects)
         slot_boxes = ObjectsBuilder()
-        for x, y in zip(self.slots.x, self.slots.y):
+        for x, y in zip(self.slots.x, self.slots.y, strict=True):
             slot_boxes.cylinder(x, y, 3.0, 0.0, 1.0, label=0, mat=Mat.CAR, color=(0, 0, 0))
         self._slot_index = SpatialIndex(slot_boxes.build())
 
@@ -242,7 +249,7 @@ def parked_cars(slots: ParkingSlots, idx: np.ndarray, *, stamp: float, seed: int
         length = 4.6 + 0.9 * u[2][n] if big else 3.8 + 1.1 * u[2][n]
         width = 1.9 + 0.15 * u[3][n] if big else 1.68 + 0.22 * u[3][n]
         height = 1.9 + 0.4 * u[4][n] if big else 1.38 + 0.25 * u[4][n]
-        color = tuple(float(c) for c in CAR_COLORS[int(u[5][n] * len(CAR_COLORS))])
+        color = as_rgb(CAR_COLORS[int(u[5][n] * len(CAR_COLORS))])
         yaw = slots.yaw[i] + (u[6][n] - 0.5) * 0.06 + (np.pi if u[7][n] < 0.2 else 0.0)
         shift = (u[6][n] - 0.5) * 0.8
         cx = slots.x[i] + np.cos(slots.yaw[i]) * shift
