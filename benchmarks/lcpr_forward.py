@@ -56,7 +56,7 @@ def paths(args: argparse.Namespace) -> None:
                   "onnx fp32": Describer(dataclasses.replace(base, precision="onnx"), model=model)}
     calibration = calibration_inputs(fp32, seed=1, frames=args.calibration_frames)
     quantize(fp32, calibration)
-    describers["onnx int8"] = Describer(dataclasses.replace(base, precision="int8"), model=model)
+    describers["int8"] = Describer(dataclasses.replace(base, precision="int8"), model=model)
     started = time.perf_counter()
     auto = Describer(dataclasses.replace(base, precision="auto"), model=model)
     auto_s = time.perf_counter() - started
@@ -75,11 +75,11 @@ def paths(args: argparse.Namespace) -> None:
     print(f"CPU: {cpu_model()}, {os.cpu_count()} cores; flags: {cpu_flags()}")
     print(f"median over {args.rounds} interleaved rounds of the median of {args.repeats}; cosine to torch fp32: "
           f"lowest over {len(frames)} synthetic frames of seed 3 (int8 calibrated on seed 1)")
-    print(f"{'path':<12} {'ms/frame':>9} {'vs torch fp32':>14} {'cosine':>10}")
+    print(f"{'path':<12} {'ms/frame':>9} {'vs torch fp32':>14} {'cosine':>10}  runtime")
     for name, d in describers.items():
         ms = statistics.median(times[name]) / args.batch * 1e3
         cos = min(cosine(d.describe_tensors(*x), e) for x, e in zip(frames, expected, strict=True))
-        print(f"{name:<12} {ms:>9.1f} {ref / statistics.median(times[name]):>13.2f}x {cos:>10.7f}")
+        print(f"{name:<12} {ms:>9.1f} {ref / statistics.median(times[name]):>13.2f}x {cos:>10.7f}  {d.runtime}")
     print(f"auto chose: {auto.path} in {auto_s:.1f} s ({auto.choice.summary() or 'memo of this process'})")
 
 

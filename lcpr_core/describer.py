@@ -25,6 +25,8 @@ log = logging.getLogger(__name__)
 #: fp32 / bf16: torch (bf16 = autocast); onnx: the exported graph in ONNX Runtime (exact); int8: its
 #: statically quantised graph (made by lcpr_quantize); auto: the fastest exact one here (lcpr_core.runtime).
 PRECISIONS = ("fp32", "bf16", "onnx", "int8", "auto")
+#: What runs an exported graph (onnx, int8): auto = for int8 the faster of the two here, for onnx ONNX Runtime.
+RUNTIMES = ("auto", "onnxruntime", "openvino")
 #: ModelConfig fields a checkpoint's 'config' entry fixes (the architecture and its input sizes).
 CHECKPOINT_FIELDS = ("width", "num_cameras", "image_size", "range_size", "lidar")
 
@@ -43,6 +45,7 @@ class ModelConfig:
     range_size: tuple[int, int] = (0, 0)  # range image (height, width) replacing the preset's; (0, 0) = the preset's
     width: float = 1.0  # channel multiplier (1.0 = released network; trained narrow models: 0.25-0.5)
     precision: str = "auto"  # auto | fp32 | bf16 (autocast) | onnx | int8 (see PRECISIONS)
+    runtime: str = "auto"  # auto | onnxruntime | openvino: what runs the exported graph (see RUNTIMES)
     device: str = "cpu"
     threads: int = 0  # torch intra-op threads; 0 = leave torch's default
     fast_decode: bool = False  # JPEG draft-mode decoding of compressed images
@@ -50,6 +53,8 @@ class ModelConfig:
     def __post_init__(self) -> None:
         if self.precision not in PRECISIONS:
             raise ValueError(f"precision={self.precision!r}; accepted: {', '.join(PRECISIONS)}")
+        if self.runtime not in RUNTIMES:
+            raise ValueError(f"runtime={self.runtime!r}; accepted: {', '.join(RUNTIMES)}")
         if self.lidar == CUSTOM:
             if min(self.range_size) < 1:
                 raise ValueError(f"lidar='custom' needs range_size=(rows, columns); got {tuple(self.range_size)}")
@@ -171,6 +176,11 @@ class Describer:
     def path(self) -> str:
         """The precision in use: ``config.precision``, or what ``auto`` chose."""
         return self.backend.name
+
+    @property
+    def runtime(self) -> str:
+        """What computes the descriptors: torch, onnxruntime or openvino."""
+        return self.backend.runtime
 
     def inputs(
         self, images: Sequence[CameraInput | None], points: np.ndarray

@@ -35,6 +35,7 @@ class Health:
     worker_waiting: int = 0
     worker_busy: bool = False
     inference: str = ""  # the inference path in use (model.precision, or what auto chose)
+    runtime: str = ""  # what runs it: torch, onnxruntime or openvino
 
 
 def _kv(key: str, value: object) -> KeyValue:
@@ -86,6 +87,7 @@ class DiagnosticsBuilder:
             _kv("session keyframes", h.session_keyframes),
             _kv("loops", h.loops),
             *([_kv("inference path", h.inference)] if h.inference else []),
+            *([_kv("inference runtime", h.runtime)] if h.runtime else []),
             *[_kv(f"latency {p} (ms)", v) for p, v in zip(("p50", "p90", "p99"), lat, strict=False)],
             *[_kv(f"model {p} (ms)", v) for p, v in zip(("p50", "p90", "p99"), model, strict=False)],
             *[_kv(f"verify {p} (ms)", v) for p, v in zip(("p50", "p90", "p99"), _ms(h.verify_time), strict=False)],

@@ -1,6 +1,6 @@
 """Offline evaluation of the loop detector on a rosbag2, against the bag's own odometry (no DDS, no rclpy).
 
-    lcpr_eval BAG [--weights FILE] [--precision auto|fp32|bf16|onnx|int8] [--threads N] [--limit N] [--out DIR] ...
+    lcpr_eval BAG [--weights FILE] [--precision P] [--runtime R] [--threads N] [--limit N] [--out DIR] ...
 
 Reads synchronised frames with :func:`msg_tools.bags.read_frames`, runs
 :class:`lcpr_core.detector.LoopDetector` frame by frame (collecting every candidate:
@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from lcpr_core.describer import PRECISIONS, Describer, ModelConfig
+from lcpr_core.describer import PRECISIONS, RUNTIMES, Describer, ModelConfig
 from lcpr_core.detector import Candidate, DetectorConfig, Frame, KeyframeConfig, LoopDetector, MatchConfig
 from lcpr_core.errors import LcprError
 from lcpr_core.evaluation import (
@@ -360,6 +360,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     g.add_argument("--seed", type=int, default=0, help="random initialisation seed (default 0)")
     g.add_argument("--precision", choices=PRECISIONS, default="auto",
                    help="inference path, as the node's model.precision (default auto: the fastest exact one here)")
+    g.add_argument("--runtime", choices=RUNTIMES, default="auto",
+                   help="what runs the exported graph, as the node's model.runtime (default auto)")
     g.add_argument("--threads", type=int, default=0, help="torch threads (default: torch's choice)")
     g.add_argument("--device", default=None,
                    help="torch device, e.g. cuda:0 (default cpu, or the parameter file's model.device)")
@@ -411,7 +413,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 #: Flags whose settings a --params-file gives (dest, default): giving both would leave it unclear which ran.
 _FILE_SETTINGS = (("image_size", None), ("lidar", None), ("camera_topics", None), ("lidar_topic", None),
                   ("slop", 0.05), ("max_distance", 1.0), ("exclude_recent", 30.0), ("keyframe_interval", 0.5),
-                  ("keyframe_distance", 0.0), ("precision", "auto"))
+                  ("keyframe_distance", 0.0), ("precision", "auto"),
+                  ("runtime", "auto"))
 
 
 def options_from_params_file(args: argparse.Namespace) -> EvalOptions:
@@ -464,7 +467,7 @@ def options_from_args(args: argparse.Namespace) -> EvalOptions:
         weights=args.weights, imagenet=args.imagenet, seed=args.seed, num_cameras=len(topics.cameras),
         image_size=tuple(args.image_size) if args.image_size else ModelConfig().image_size,
         lidar=args.lidar or LIDAR_FOR_TOPICS[args.topics], precision=args.precision, threads=args.threads,
-        device=args.device or "cpu",
+        runtime=args.runtime, device=args.device or "cpu",
     )
     return EvalOptions(
         topics=topics, model=model,

@@ -286,6 +286,7 @@ class LcprNode(Node):
             verification=self.verdicts.snapshot(), verify_time=self.verify_time.percentiles(50, 90, 99),
             sync_pending=self.sync.pending, worker_waiting=self.worker.waiting, worker_busy=self.worker.busy,
             inference=self.detector.describer.path,
+            runtime=self.detector.describer.runtime,
         )
 
     def _publish_diagnostics(self) -> None:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from lcpr_core.describer import PRECISIONS
+from lcpr_core.describer import PRECISIONS, RUNTIMES
 from lcpr_core.descriptor_map import INDEX_TYPES
 from lcpr_core.preprocess import CUSTOM, PRESETS
 
@@ -63,6 +63,9 @@ DOCS: dict[str, ParamDoc] = {
     "model.precision": ParamDoc("inference path: auto (the fastest exact one on this machine, measured at start), "
                                 "fp32 / bf16 (torch), onnx (ONNX Runtime, exact), int8 (needs lcpr_quantize)",
                                 choices=PRECISIONS),
+    "model.runtime": ParamDoc("what runs the exported graph (precision onnx / int8): auto (int8: the faster of "
+                              "the two, measured at start; onnx: onnxruntime), onnxruntime, openvino",
+                              choices=RUNTIMES),
     "model.device": ParamDoc("torch device, e.g. cpu or cuda:0"),
     "model.threads": ParamDoc("torch intra-op threads; 0 = torch's default", 0, 1024),
     "model.fast_decode": ParamDoc("JPEG draft-mode decoding of compressed images (faster, slightly different pixels)"),

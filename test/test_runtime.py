@@ -1,6 +1,7 @@
 """Inference paths: the exported graph, its cache, auto's choice and the int8 refusal."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 from pathlib import Path
@@ -100,20 +101,62 @@ def test_an_unknown_precision_names_the_accepted_ones() -> None:
         ModelConfig(precision="fp16")
 
 
-def test_lcpr_quantize_writes_the_int8_graph_the_int8_path_then_loads(tmp_path: Path, capsys) -> None:
+def test_lcpr_quantize_writes_the_int8_graph_the_int8_path_then_loads(tmp_path: Path, capsys, caplog) -> None:
     from lcpr_core.runtime.quantize import main as lcpr_quantize
 
     weights = narrow_weights(tmp_path, seed=3)
     assert lcpr_quantize(["--weights", str(weights), "--frames", "3", "--no-progress", "--threads", "2"]) == 0
     config = ModelConfig(weights=str(weights), precision="int8", **NARROW)
     assert onnx_path(config, "int8").parent == tmp_path and "int8 graph" in capsys.readouterr().out
-    describer = Describer(config)
-    assert describer.path == "int8"
+    with caplog.at_level(logging.INFO, logger="lcpr_core.runtime.choose"):
+        describer = Describer(config)  # model.runtime auto: both runtimes timed, the faster kept
+    assert describer.path == "int8" and describer.runtime in ("onnxruntime", "openvino")
+    timed = next(r.getMessage() for r in caplog.records if "int8 runs in" in r.getMessage())
+    assert "onnxruntime" in timed and "openvino" in timed and " ms" in timed
     assert describer.model is not None
     images, ranges = probe_inputs(describer.model)
     with torch.inference_mode():
         expected = describer.model(images, ranges).numpy()
     assert 0.95 <= cosine(describer.describe_tensors(images, ranges), expected) < 1.0 - 1e-9  # close, not exact
+    for runtime in ("onnxruntime", "openvino"):  # the same int8 graph in either runtime: close to each other
+        pinned = Describer(dataclasses.replace(config, runtime=runtime), model=describer.model)
+        assert pinned.runtime == runtime
+        assert cosine(pinned.describe_tensors(images, ranges), describer.describe_tensors(images, ranges)) >= 0.999
+
+
+def test_int8_falls_back_to_onnx_runtime_when_openvino_cannot_compile_the_graph(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    from lcpr_core.errors import RuntimeSetupError
+    from lcpr_core.runtime import choose
+    from lcpr_core.runtime.quantize import main as lcpr_quantize
+
+    def refuse(path: object, **_: object) -> None:
+        raise RuntimeSetupError(f"OpenVINO cannot load {str(path)!r}: a transformation failed")
+
+    weights = narrow_weights(tmp_path, seed=5)
+    assert lcpr_quantize(["--weights", str(weights), "--frames", "2", "--no-progress", "--threads", "2"]) == 0
+    monkeypatch.setattr(choose, "OpenVinoBackend", refuse)
+    with caplog.at_level(logging.INFO, logger="lcpr_core.runtime.choose"):
+        describer = Describer(ModelConfig(weights=str(weights), precision="int8", **NARROW))
+    assert (describer.path, describer.runtime) == ("int8", "onnxruntime")
+    assert any("openvino not measured" in r.getMessage() and "int8-" in r.getMessage() for r in caplog.records)
+    with pytest.raises(RuntimeSetupError, match="OpenVINO cannot load"):  # pinned, it is an error
+        Describer(ModelConfig(weights=str(weights), precision="int8", runtime="openvino", **NARROW))
+
+
+def test_openvino_runs_the_exported_graph_exactly(tmp_path: Path) -> None:
+    weights = str(narrow_weights(tmp_path, seed=4))
+    exact = Describer(ModelConfig(weights=weights, precision="fp32", **NARROW))
+    assert exact.model is not None
+    ov = Describer(ModelConfig(weights=weights, precision="onnx", runtime="openvino", **NARROW), model=exact.model)
+    assert (ov.path, ov.runtime) == ("onnx", "openvino")
+    images, ranges = probe_inputs(exact.model, batch=2)
+    assert cosine(ov.describe_tensors(images, ranges), exact.describe_tensors(images, ranges)) >= EXACT_COSINE
+
+
+def test_an_unknown_runtime_names_the_accepted_ones() -> None:
+    with pytest.raises(ValueError, match="runtime='tensorrt'; accepted: auto, onnxruntime, openvino"):
+        ModelConfig(runtime="tensorrt")
 
 
 def test_lcpr_quantize_refuses_to_calibrate_on_the_held_out_test_city(tmp_path: Path, capsys) -> None:

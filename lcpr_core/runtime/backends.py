@@ -1,4 +1,4 @@
-"""One forward pass, three ways: torch (fp32 or bf16 autocast) and ONNX Runtime (an exported graph)."""
+"""One forward pass, several ways: torch (fp32 or bf16), or an exported graph in ONNX Runtime or OpenVINO."""
 from __future__ import annotations
 
 import os
@@ -17,6 +17,7 @@ if TYPE_CHECKING:
 
 class Backend(Protocol):
     name: str  # the ModelConfig.precision value it implements
+    runtime: str  # what runs it: torch, onnxruntime or openvino
 
     def __call__(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:
         """B x N x 3 x H x W images, B x 1 x h x w ranges -> B x 256 float32 descriptors."""
@@ -27,7 +28,7 @@ class TorchBackend:
 
     def __init__(self, model: LCPR, *, device: str = "cpu", bf16: bool = False) -> None:
         self.model, self.device, self.bf16 = model, device, bf16
-        self.name = "bf16" if bf16 else "fp32"
+        self.name, self.runtime = ("bf16" if bf16 else "fp32"), "torch"
 
     def __call__(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:
         device_type = torch.device(self.device).type
@@ -55,8 +56,40 @@ class OrtBackend:
             self.session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
         except Exception as err:  # onnxruntime raises its own exception types for bad files
             raise RuntimeSetupError(f"ONNX Runtime cannot load {str(path)!r}: {err}") from err
-        self.path, self.name = Path(path), name
+        self.path, self.name, self.runtime = Path(path), name, "onnxruntime"
 
     def __call__(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:
         feeds = {"images": images.detach().cpu().float().numpy(), "ranges": ranges.detach().cpu().float().numpy()}
         return np.asarray(self.session.run(["descriptor"], feeds)[0], dtype=np.float32)
+
+
+class OpenVinoBackend:
+    """An exported LCPR graph (fp32, or int8 QDQ from lcpr_quantize) run by OpenVINO on the CPU.
+
+    The inference precision is pinned to f32: on CPUs with bf16 support OpenVINO's default runs
+    every unquantised layer in bf16, which is not the graph that was checked. The int8 QDQ pairs
+    still run as int8 convolutions (VNNI / AMX), which is why this is the faster int8 runtime on
+    the Xeons measured (README, "Inference paths").
+    """
+
+    def __init__(self, path: str | os.PathLike[str], *, threads: int = 0, name: str = "int8") -> None:
+        try:
+            import openvino as ov
+        except ImportError as err:
+            raise RuntimeSetupError("model.runtime='openvino' needs openvino (pip install openvino); "
+                                    "accepted without it: onnxruntime, auto") from err
+        fix_mmap_threshold()  # once per process: see .heap
+        properties: dict[str, object] = {"INFERENCE_PRECISION_HINT": "f32", "PERFORMANCE_HINT": "LATENCY"}
+        if threads:
+            properties["INFERENCE_NUM_THREADS"] = threads
+        try:
+            self.compiled = ov.Core().compile_model(str(path), "CPU", properties)
+        except Exception as err:  # OpenVINO raises RuntimeError subclasses of its own for bad files
+            raise RuntimeSetupError(f"OpenVINO cannot load {str(path)!r}: {err}") from err
+        self.request = self.compiled.create_infer_request()
+        self.output = self.compiled.output("descriptor")
+        self.path, self.name, self.runtime = Path(path), name, "openvino"
+
+    def __call__(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:
+        feeds = {"images": images.detach().cpu().float().numpy(), "ranges": ranges.detach().cpu().float().numpy()}
+        return np.array(self.request.infer(feeds)[self.output], dtype=np.float32)  # a copy: the request reuses it
