@@ -64,7 +64,7 @@ setup(
     entry_points={
         "console_scripts": [
             "lcpr_demo = lcpr_ros.demo:main",
-            "lcpr_keyframe_demo = lcpr_core.demo:main",
+            "lcpr_keyframe_demo = lcpr_core.keyframe_demo:main",
             "lcpr_quantize = lcpr_core.runtime.quantize:main",
             "lcpr_node = lcpr_ros.node:main",
             "lcpr_replay = lcpr_ros.replay:main",

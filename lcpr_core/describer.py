@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from .checkpoint import init_from_imagenet, load_weights
-from .errors import CheckpointError
+from .errors import CheckpointError, InvalidValueError
 from .models import LCPR
 from .preprocess import CUSTOM, LidarGeometry, LidarPreset, cameras_tensor, lidar_preset, range_image
 from .preprocess.camera import CameraInput
@@ -52,20 +52,21 @@ class ModelConfig:
 
     def __post_init__(self) -> None:
         if self.precision not in PRECISIONS:
-            raise ValueError(f"precision={self.precision!r}; accepted: {', '.join(PRECISIONS)}")
+            raise InvalidValueError(f"precision={self.precision!r}; accepted: {', '.join(PRECISIONS)}")
         if self.runtime not in RUNTIMES:
-            raise ValueError(f"runtime={self.runtime!r}; accepted: {', '.join(RUNTIMES)}")
+            raise InvalidValueError(f"runtime={self.runtime!r}; accepted: {', '.join(RUNTIMES)}")
         if self.lidar == CUSTOM:
             if min(self.range_size) < 1:
-                raise ValueError(f"lidar='custom' needs range_size=(rows, columns); got {tuple(self.range_size)}")
+                raise InvalidValueError(
+                    f"lidar='custom' needs range_size=(rows, columns); got {tuple(self.range_size)}")
         else:
             lidar_preset(self.lidar)  # raises with the accepted names
         if self.threads < 0:
-            raise ValueError(f"threads={self.threads}; it must be >= 0 (0 = torch's default)")
+            raise InvalidValueError(f"threads={self.threads}; it must be >= 0 (0 = torch's default)")
         if not 0 < self.width <= 4:
-            raise ValueError(f"width={self.width}; accepted: a channel multiplier in (0, 4], e.g. 1.0 or 0.25")
+            raise InvalidValueError(f"width={self.width}; accepted: a channel multiplier in (0, 4], e.g. 1.0 or 0.25")
         if len(self.range_size) != 2 or (tuple(self.range_size) != (0, 0) and min(self.range_size) < 1):
-            raise ValueError(f"range_size={self.range_size}; accepted: (0, 0) (the preset's) or (height, width)")
+            raise InvalidValueError(f"range_size={self.range_size}; accepted: (0, 0) (the preset's) or (height, width)")
 
     @property
     def range_preset(self) -> LidarPreset:

@@ -35,6 +35,8 @@ import numpy as np
 
 from .describer import Describer, ModelConfig
 from .descriptor_map import DescriptorMap, MapConfig, Match
+from .errors import InvalidValueError
+from .keyframes import keyframe_reason
 from .preprocess.camera import CameraInput
 from .verification import GeometricVerifier, PreparedCloud, Verification, VerifierConfig
 
@@ -45,7 +47,7 @@ def _non_negative(obj: object, *names: str) -> None:
     for name in names:
         value = getattr(obj, name)
         if not value >= 0:
-            raise ValueError(f"{type(obj).__name__}.{name}={value!r}; it must be >= 0")
+            raise InvalidValueError(f"{type(obj).__name__}.{name}={value!r}; it must be >= 0")
 
 
 @dataclass(frozen=True)
@@ -66,7 +68,7 @@ class MatchConfig:
 
     def __post_init__(self) -> None:
         if self.top_k < 1:
-            raise ValueError(f"match.top_k={self.top_k}; it must be at least 1")
+            raise InvalidValueError(f"match.top_k={self.top_k}; it must be at least 1")
         _non_negative(self, "max_distance", "exclude_recent_s", "exclude_recent_count")
 
 
@@ -266,14 +268,11 @@ class LoopDetector:
             return "out of order"
         if frame.points is None and self.config.sensors.require_lidar:
             return "no lidar"
-        if self._session_stamps and frame.stamp - self._session_stamps[-1] < self.config.keyframe.min_interval:
-            return "too soon"
-        min_distance = self.config.keyframe.min_distance
-        if min_distance > 0 and frame.pose is not None and self._last_position is not None:
-            moved = np.linalg.norm(np.asarray(frame.pose, np.float64)[:3, 3] - self._last_position)
-            if moved < min_distance:
-                return "not moved"
-        return "keyframe"
+        position = None if frame.pose is None else np.asarray(frame.pose, np.float64)[:3, 3]
+        return keyframe_reason(frame.stamp, position,
+                               last_stamp=self._session_stamps[-1] if self._session_stamps else None,
+                               last_position=self._last_position, min_interval=self.config.keyframe.min_interval,
+                               min_distance=self.config.keyframe.min_distance)
 
     def _search(self, desc: np.ndarray, stamp: float) -> list[Match]:
         """Top-k map entries within max_distance, this session's recent keyframes left out.

@@ -5,8 +5,24 @@ class LcprError(Exception):
     """Base class of every error raised by lcpr_core."""
 
 
+class InvalidValueError(LcprError, ValueError):
+    """An argument, setting or input value outside what is accepted (the message names both)."""
+
+
+class DatasetFileError(LcprError, FileNotFoundError):
+    """A dataset folder lacks the files it should hold (the message names what was expected)."""
+
+
 class CheckpointError(LcprError):
     """A weights file cannot be read or does not fit the model."""
+
+
+class UnsafePickleError(CheckpointError):
+    """A pickle names a global the restricted unpickler does not allow; nothing from it ran."""
+
+
+class CacheError(LcprError):
+    """A bag could not be turned into training samples."""
 
 
 class InputShapeError(LcprError, ValueError):

@@ -47,8 +47,8 @@ import numpy as np
 
 from msg_tools.ground_truth import revisit_pairs
 
-from .atomic import atomic_path
-from .errors import InputShapeError
+from .atomic import atomic_path, save_figure
+from .errors import InputShapeError, InvalidValueError
 from .loop_report import (
     LoopScore,
     PoseGraphProof,
@@ -118,11 +118,11 @@ def ground_truth(
     if p.ndim != 2 or p.shape[1] not in (2, 3) or t.shape != (len(p),):
         raise InputShapeError(f"stamps of shape {t.shape} and positions of shape {p.shape}; expected (N,) and (N, 2|3)")
     if not (radius > 0):
-        raise ValueError(f"radius={radius!r}; expected a positive distance in metres")
+        raise InvalidValueError(f"radius={radius!r}; expected a positive distance in metres")
     if not (exclude_recent_s >= 0):
-        raise ValueError(f"exclude_recent_s={exclude_recent_s!r}; expected seconds >= 0")
+        raise InvalidValueError(f"exclude_recent_s={exclude_recent_s!r}; expected seconds >= 0")
     if len(t) > 1 and np.any(np.diff(t) < 0):
-        raise ValueError("keyframe stamps are not in time order; expected non-decreasing stamps")
+        raise InvalidValueError("keyframe stamps are not in time order; expected non-decreasing stamps")
     if p.shape[1] == 2:
         p = np.c_[p, np.zeros(len(p))]
     valid = np.isfinite(p).all(axis=1)
@@ -258,10 +258,10 @@ def ranked_protocol(
     if ids.size and (ids.max() >= len(dp) or ids.min() < -1):
         raise InputShapeError(f"ranked ids span {ids.min()}..{ids.max()}; expected -1 or 0..{len(dp) - 1}")
     if not (radius > 0):
-        raise ValueError(f"radius={radius!r}; expected a positive distance in metres")
+        raise InvalidValueError(f"radius={radius!r}; expected a positive distance in metres")
     ns = sorted({int(n) for n in n_values})
     if not ns or ns[0] < 1:
-        raise ValueError(f"n_values {list(n_values)} are not accepted; expected positive integers")
+        raise InvalidValueError(f"n_values {list(n_values)} are not accepted; expected positive integers")
     dist = np.where(ids >= 0, dist, np.inf)
     if ids.shape[1] == 0:
         ids, dist = np.full((len(ids), 1), -1), np.full((len(ids), 1), np.inf)
@@ -334,7 +334,7 @@ def database_query_protocol(
     :func:`~lcpr_core.metrics.precision_recall`; otherwise ``retrieve`` ranks the database.
     """
     if (descriptors is None) == (retrieve is None):
-        raise ValueError("give exactly one of descriptors (L2) or retrieve (a ranked search)")
+        raise InvalidValueError("give exactly one of descriptors (L2) or retrieve (a ranked search)")
     db, q = gt.database, gt.queries
     if len(db) == 0 or len(q) == 0:
         return None
@@ -409,7 +409,7 @@ def latency_stats(timings: Sequence[Mapping[str, float]], *, warmup: int = 0) ->
     """
     samples = list(timings)
     if warmup < 0:
-        raise ValueError(f"warmup={warmup}; expected >= 0 samples")
+        raise InvalidValueError(f"warmup={warmup}; expected >= 0 samples")
     if len(samples) > warmup:
         samples = samples[warmup:]
     stages: dict[str, list[float]] = {}
@@ -551,7 +551,7 @@ def evaluate_verified(
         raise InputShapeError(f"{len(fit)} fitness values for {len(loops)} loops; expected one per loop")
     queries = [loop.query for loop in loops]
     if len(set(queries)) != len(queries):
-        raise ValueError("several loops share a query; expected at most one verified loop per keyframe")
+        raise InvalidValueError("several loops share a query; expected at most one verified loop per keyframe")
     score = score_loops(loops, positions=gt.positions, world_T_lidar=world_T_lidar, has_revisit=gt.has_loop,
                         radius=gt.radius)
     correct = loop_correct(loops, gt.positions, gt.radius)
@@ -719,12 +719,6 @@ def _figure(size: tuple[float, float]) -> Any:
     return fig
 
 
-def _save(fig: Any, path: str | os.PathLike[str]) -> None:
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-
-
 def plot_pr_curves(methods: Sequence[MethodResult], path: str | os.PathLike[str]) -> None:
     """Top-1 PR curves of every method, online protocol left, database/query right."""
     fig = _figure((10, 4.5))
@@ -743,7 +737,7 @@ def plot_pr_curves(methods: Sequence[MethodResult], path: str | os.PathLike[str]
         ax.set(xlabel="recall", ylabel="precision", title=title, xlim=(0, 1.02), ylim=(0, 1.02))
         ax.grid(alpha=0.3)
         ax.legend(loc="lower left", fontsize=8)
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_latency(methods: Sequence[MethodResult], path: str | os.PathLike[str], *, warmup: int = 0) -> None:
@@ -771,7 +765,7 @@ def plot_latency(methods: Sequence[MethodResult], path: str | os.PathLike[str], 
         ax.set(xlabel="ms per keyframe", ylabel="keyframes", title=f"{m.name}{extra}")
         ax.title.set_fontsize(9)
         ax.grid(alpha=0.3)
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_trajectory(gt: GroundTruth, methods: Sequence[MethodResult], path: str | os.PathLike[str]) -> None:
@@ -809,4 +803,4 @@ def plot_trajectory(gt: GroundTruth, methods: Sequence[MethodResult], path: str 
         ax.set_aspect("equal", adjustable="datalim")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8, loc="best")
-    _save(fig, path)
+    save_figure(fig, path)

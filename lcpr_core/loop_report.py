@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import InputShapeError
+from .errors import InputShapeError, InvalidValueError
 from .metrics import PRResult, pr_sweep
 from .posegraph import (
     DriftModel,
@@ -109,7 +109,7 @@ def loop_correct(loops: Sequence[PublishedLoop], positions: np.ndarray, radius: 
     if pos.ndim != 2 or pos.shape[1] not in (2, 3):
         raise InputShapeError(f"positions of shape {pos.shape}; expected (N, 3) (or (N, 2)) keyframe positions")
     if not (isinstance(radius, (int, float, np.floating)) and math.isfinite(radius) and radius > 0):
-        raise ValueError(f"radius={radius!r}; expected a positive distance in metres")
+        raise InvalidValueError(f"radius={radius!r}; expected a positive distance in metres")
     out = np.zeros(len(loops), bool)
     for k, loop in enumerate(loops):
         q = _index(loop.query, len(pos), f"loops[{k}].query")

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .atomic import atomic_path
-from .errors import InputShapeError
+from .atomic import save_figure
+from .errors import InputShapeError, InvalidValueError
 
 __all__ = ["RecallResult", "PRResult", "recall_at_n", "precision_recall", "plot_pr_curve"]
 
@@ -64,7 +64,7 @@ def recall_at_n(
     qd, dd, qp, dp = _check_inputs(query_desc, db_desc, query_pos, db_pos, threshold)
     ns = sorted({int(n) for n in n_values})
     if not ns or ns[0] < 1:
-        raise ValueError(f"n_values {list(n_values)} are not accepted; expected positive integers")
+        raise InvalidValueError(f"n_values {list(n_values)} are not accepted; expected positive integers")
     top = min(ns[-1], len(dd))
     hits = np.zeros((len(qd), top), dtype=bool)  # hits[i, r]: rank-r retrieval is a true match
     has_match = np.zeros(len(qd), dtype=bool)
@@ -75,7 +75,7 @@ def recall_at_n(
         hits[lo:hi] = np.take_along_axis(near, order, axis=1)
     evaluated = int(has_match.sum())
     if evaluated == 0:
-        raise ValueError(f"no query has a database entry within {threshold} m; recall@N is undefined")
+        raise InvalidValueError(f"no query has a database entry within {threshold} m; recall@N is undefined")
     found = np.logical_or.accumulate(hits[has_match], axis=1)  # (E, top): true match within first r+1
     recalls = {n: float(found[:, min(n, top) - 1].mean()) for n in ns}
     return RecallResult(recalls=recalls, num_queries=evaluated, num_skipped=len(qd) - evaluated)
@@ -103,7 +103,7 @@ def precision_recall(
         correct[lo:hi] = near[np.arange(hi - lo), best]
     positives = int(has_match.sum())
     if positives == 0:
-        raise ValueError(f"no query has a database entry within {threshold} m; recall is undefined")
+        raise InvalidValueError(f"no query has a database entry within {threshold} m; recall is undefined")
 
     result = pr_sweep(top_dist, correct, num_positives=positives, num_queries=len(qd))
     assert result is not None  # positives > 0 and every query has a (finite) top-1 distance
@@ -120,7 +120,7 @@ def pr_sweep(distances: np.ndarray, correct: np.ndarray, *, num_positives: int, 
     d = np.asarray(distances, np.float64)
     ok = np.asarray(correct, bool)
     if d.shape != ok.shape or d.ndim != 1:
-        raise ValueError(f"distances {d.shape} and correct {ok.shape}; expected two (Q,) arrays")
+        raise InvalidValueError(f"distances {d.shape} and correct {ok.shape}; expected two (Q,) arrays")
     predicted = np.isfinite(d)
     if num_positives <= 0 or not predicted.any():
         return None
@@ -153,9 +153,7 @@ def plot_pr_curve(result: PRResult, path: str | os.PathLike[str], *, title: str 
     ax.set(xlabel="recall", ylabel="precision", title=title, xlim=(0, 1.02), ylim=(0, 1.02))
     ax.grid(alpha=0.3)
     ax.legend(loc="lower left")
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
+    save_figure(fig, path)
 
 
 # ---------------------------------------------------------------------- helpers
@@ -177,7 +175,7 @@ def _check_inputs(
     if len(qd) == 0 or len(dd) == 0:
         raise InputShapeError(f"{len(qd)} queries and {len(dd)} database entries; both must be non-empty")
     if not (threshold > 0):
-        raise ValueError(f"threshold={threshold!r} is not accepted; expected a positive distance in metres")
+        raise InvalidValueError(f"threshold={threshold!r} is not accepted; expected a positive distance in metres")
     return qd, dd, qp, dp
 
 

@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from .atomic import atomic_path
+from .atomic import save_figure
 from .errors import PoseGraphError
 
 __all__ = [
@@ -403,9 +403,7 @@ def plot_trajectories(
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(alpha=0.3)
     ax.legend(loc="best", fontsize=8)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
+    save_figure(fig, path)
 
 
 # ============================================================================ helpers

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import InputShapeError
+from .errors import InputShapeError, InvalidValueError
 from .points import finite_xyz
 
 __all__ = [
@@ -52,18 +52,18 @@ class ScanContextConfig:
         for name in ("num_rings", "num_sectors", "candidates"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-                raise ValueError(f"ScanContextConfig.{name}={value!r}; it must be a positive integer")
+                raise InvalidValueError(f"ScanContextConfig.{name}={value!r}; it must be a positive integer")
         if not (0.0 <= self.min_range < self.max_range):
-            raise ValueError(
+            raise InvalidValueError(
                 f"ScanContextConfig min_range={self.min_range!r}, max_range={self.max_range!r}; "
                 "accepted: 0 <= min_range < max_range"
             )
         if self.ring_key not in RING_KEYS:
-            raise ValueError(f"ScanContextConfig.ring_key={self.ring_key!r}; accepted: {', '.join(RING_KEYS)}")
+            raise InvalidValueError(f"ScanContextConfig.ring_key={self.ring_key!r}; accepted: {', '.join(RING_KEYS)}")
         if not self.exclude_recent_s >= 0:
-            raise ValueError(f"ScanContextConfig.exclude_recent_s={self.exclude_recent_s!r}; it must be >= 0")
+            raise InvalidValueError(f"ScanContextConfig.exclude_recent_s={self.exclude_recent_s!r}; it must be >= 0")
         if not np.isfinite(self.lidar_height):
-            raise ValueError(f"ScanContextConfig.lidar_height={self.lidar_height!r}; it must be a finite number")
+            raise InvalidValueError(f"ScanContextConfig.lidar_height={self.lidar_height!r}; it must be a finite number")
 
 
 def scan_context(points: np.ndarray, *, config: ScanContextConfig | None = None) -> np.ndarray:
@@ -100,7 +100,7 @@ def ring_key(sc: np.ndarray, *, kind: str = "occupancy") -> np.ndarray:
         return (m > 0).mean(axis=1).astype(np.float32)
     if kind == "mean":
         return m.mean(axis=1).astype(np.float32)
-    raise ValueError(f"ring key kind {kind!r}; accepted: {', '.join(RING_KEYS)}")
+    raise InvalidValueError(f"ring key kind {kind!r}; accepted: {', '.join(RING_KEYS)}")
 
 
 def sc_distance(a: np.ndarray, b: np.ndarray) -> tuple[float, int]:
@@ -195,7 +195,7 @@ class ScanContextMatcher:
         if m.shape != (cfg.num_rings, cfg.num_sectors):
             raise InputShapeError(f"sc has shape {m.shape}; this matcher stores {cfg.num_rings} x {cfg.num_sectors}")
         if not np.isfinite(stamp):
-            raise ValueError(f"stamp={stamp!r}; expected finite seconds")
+            raise InvalidValueError(f"stamp={stamp!r}; expected finite seconds")
         pos = np.full(3, np.nan) if position is None else np.asarray(position, np.float64).reshape(-1)[:3]
         if pos.shape != (3,):
             raise InputShapeError(f"position has {pos.size} values; expected x, y, z")
@@ -222,7 +222,7 @@ class ScanContextMatcher:
         cfg = self.config
         k = cfg.candidates if k is None else int(k)
         if k < 1:
-            raise ValueError(f"k={k}; it must be at least 1")
+            raise InvalidValueError(f"k={k}; it must be at least 1")
         n = self._n
         allowed = np.arange(n) if stamp is None else np.flatnonzero(self._stamps[:n] <= stamp - cfg.exclude_recent_s)
         if len(allowed) == 0:

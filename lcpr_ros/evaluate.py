@@ -59,6 +59,7 @@ from lcpr_core.verification import VerifierConfig
 from msg_tools.bags import read_frames, read_static_transforms
 from msg_tools.errors import MsgToolsError
 from msg_tools.frames import KITTI_TOPICS, NUSCENES_TOPICS, SensorFrame, Topics
+from msg_tools.progress import progress_bar
 from msg_tools.transforms import BASE_FRAME
 
 TOPIC_PRESETS: dict[str, Topics] = {"nuscenes": NUSCENES_TOPICS, "kitti": KITTI_TOPICS}
@@ -157,19 +158,17 @@ def evaluate_bag(
     record = _RunRecord(LoopDetector(config, describer=describer), matcher)
     stream = read_frames(bag, topics=opts.topics, slop=opts.slop, decode_compressed=False)
     total = len(stream) if not opts.limit else min(opts.limit, len(stream))
-    bar = _bar(total, progress)
+    bar = progress_bar(total, desc="lcpr_eval", unit="frame", enabled=progress)
     try:
         for frame in stream:
             if opts.limit and record.frames >= opts.limit:
                 break
             _step(frame, record)
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix(keyframes=len(record.stamps), refresh=False)
+            bar.update(1)
+            bar.set_postfix(keyframes=len(record.stamps), refresh=False)
     finally:
         stream.close()
-        if bar is not None:
-            bar.close()
+        bar.close()
     stats = dataclasses.asdict(stream.stats)
     counts = {
         "frames": record.frames, "frames_in_bag": len(stream), "keyframes": len(record.stamps),
@@ -319,14 +318,6 @@ def _descriptors(record: _RunRecord, row_of: dict[int, int]) -> np.ndarray | Non
         if map_id in row_of:
             out[row_of[map_id]] = desc[pos]
     return out
-
-
-def _bar(total: int, enabled: bool) -> Any:
-    if not enabled:
-        return None
-    from tqdm import tqdm
-
-    return tqdm(total=total, unit="frame", desc="lcpr_eval", dynamic_ncols=True)
 
 
 def write_outputs(report: EvaluationReport, out: str | os.PathLike[str]) -> list[Path]:

@@ -49,6 +49,7 @@ from rclpy.utilities import remove_ros_args
 
 from msg_tools.bags.open import open_bag
 from msg_tools.errors import BagError
+from msg_tools.progress import progress_bar
 
 from .stamps import NS_PER_S
 
@@ -180,7 +181,7 @@ def replay(
             connections.append(c)
         _wait_for_subscribers(list(publishers.values()), wait_subscribers, stop)
         total = sum(c.msgcount for c in connections)
-        bar = _progress(total, progress)
+        bar = progress_bar(total, desc="replay", unit="msg", enabled=progress)
         start_wall = time.monotonic()
         first_ns: int | None = None
         try:
@@ -197,11 +198,9 @@ def replay(
                         break
                 publishers[connection.topic].publish(bytes(raw))
                 stats.published[connection.topic] += 1
-                if bar is not None:
-                    bar.update(1)
+                bar.update(1)
         finally:
-            if bar is not None:
-                bar.close()
+            bar.close()
         for publisher in publishers.values():  # let reliable subscribers take the last messages
             publisher.wait_for_all_acked(Duration(seconds=2))
     stats.seconds = time.monotonic() - start_wall if connections else 0.0
@@ -220,14 +219,6 @@ def _wait_for_subscribers(publishers: list[Any], timeout: float, stop: threading
         if publishers and all(p.get_subscription_count() > 0 for p in publishers):
             return
         stop.wait(0.05)
-
-
-def _progress(total: int, enabled: bool) -> Any:
-    if not enabled:
-        return None
-    from tqdm import tqdm
-
-    return tqdm(total=total, unit="msg", desc="replay")
 
 
 def _parser() -> argparse.ArgumentParser:

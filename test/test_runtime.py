@@ -13,7 +13,7 @@ import torch
 
 from lcpr_core import Describer, ModelConfig
 from lcpr_core.errors import RuntimeSetupError
-from lcpr_core.preprocess.files import find_nuscenes_keyframe
+from lcpr_core.preprocess.dataset_files import find_nuscenes_keyframe
 from lcpr_core.runtime import EXACT_COSINE, graph_key, onnx_path
 from lcpr_core.runtime.choose import cosine, probe_inputs
 

@@ -136,7 +136,7 @@ def test_single_frame_mode_and_the_feature_match_reference_find_every_loop_too(o
 def test_the_command_compares_untrained_with_given_weights_and_writes_json_and_png(tmp_path: Path,
                                                                                     capsys) -> None:
     from lcpr_core.vseq2pc.checkpoint import save_descriptor_weights, save_sequence_weights
-    from lcpr_core.vseq2pc.init import seeded_models
+    from lcpr_core.vseq2pc.initialisation import seeded_models
 
     cache = position_cache(square_drive(laps=1.6, side=30.0))  # 96 frames: the real networks stay quick
     cache.save(tmp_path / "cache.npz")

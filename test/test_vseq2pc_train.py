@@ -10,7 +10,7 @@ import torch
 
 from lcpr_core.vseq2pc import Vseq2pcNet
 from lcpr_core.vseq2pc.dataset import FeatureCache
-from lcpr_core.vseq2pc.init import seeded_models
+from lcpr_core.vseq2pc.initialisation import seeded_models
 from lcpr_core.vseq2pc.pairs import TrainPairConfig, training_pairs
 from lcpr_core.vseq2pc.train import TrainConfig, lr_at, main, place_loss, split, train
 

@@ -31,6 +31,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
+from lcpr_core.keyframes import KeyframeGate
 from lcpr_core.preprocess.structure import camera_feature, structure_feature
 from lcpr_core.vseq2pc import SequenceBuilder, Vseq2pcNet
 from lcpr_ros.diagnostics import DiagnosticsBuilder, Health
@@ -48,7 +49,7 @@ from .inputs import CLOUD_NAN, SIZE_MISMATCH, depth_image, intrinsics, label_ima
 from .mapstore import open_map
 from .outputs import candidate_rows, loop_closure_msg, table_msg
 from .params import all_leaves, describe_all, make_runtime, settings_from
-from .sync import NO_PAIR, TIME_JUMPED, ImagePairs, MotionFilter, PoseQueue
+from .sync import NO_PAIR, TIME_JUMPED, ImagePairs, PoseQueue
 from .worker import FifoWorker
 
 NODE_NAME = "vseq2pc"
@@ -129,7 +130,7 @@ class Vseq2pcNode(Node):
         self._cloud_order = StampOrder(round(cfg.sync.jump_back * NS_PER_S))
         self._timelines = {"cloud": 0, "camera": 0}  # odometry timeline each stream follows (follow_jump)
         self.camera_sessions = 0  # times header time jumped back on the depth or the label stream
-        self._scan_filter, self._camera_filter = MotionFilter(), MotionFilter()
+        self._scan_filter, self._camera_filter = KeyframeGate(), KeyframeGate()  # lcpr_core.keyframes: one rule
         self._camera: tuple[np.ndarray, int, int] | None = None  # K, width, height
 
         self._loop_pub = self.create_publisher(Float64MultiArray, "~/loop_closure", CANDIDATE_QOS)
@@ -255,7 +256,7 @@ class Vseq2pcNode(Node):
         before = sum(self.scan_queue.drops.values()) + sum(self.camera_queue.drops.values())
         for item, pose in self.scan_queue.ready():
             points, labels, arrival = item.payload
-            if not self._scan_filter.keep(item.stamp_ns, pose, min_distance=cfg.scan.min_distance,
+            if not self._scan_filter.keep(item.stamp_ns / 1e9, pose, min_distance=cfg.scan.min_distance,
                                           min_interval=cfg.scan.min_interval):
                 self.decisions.add("scans skipped (scan.min_distance / min_interval)")
                 continue
@@ -268,7 +269,7 @@ class Vseq2pcNode(Node):
                 self._reject(InputRejected(SIZE_MISMATCH, f"images {depth.shape[1]} x {depth.shape[0]}, "
                                                           f"camera_info {width} x {height}"))
                 continue
-            if not self._camera_filter.keep(item.stamp_ns, pose, min_distance=cfg.camera.min_distance,
+            if not self._camera_filter.keep(item.stamp_ns / 1e9, pose, min_distance=cfg.camera.min_distance,
                                             min_interval=cfg.camera.min_interval):
                 self.decisions.add("camera frames skipped (camera.min_distance / min_interval)")
                 continue

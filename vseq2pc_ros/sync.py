@@ -138,25 +138,3 @@ class PoseQueue:
                 continue
             break  # later items are newer: they wait too
         return out
-
-
-class MotionFilter:
-    """Keeps an item when it is at least ``min_distance`` m and ``min_interval`` s after the last kept one."""
-
-    def __init__(self) -> None:
-        self.reset()
-
-    def reset(self) -> None:
-        """Forget the last kept item (time jumped back: the next item is kept)."""
-        self._last_xy: np.ndarray | None = None
-        self._last_ns: int | None = None
-
-    def keep(self, stamp_ns: int, pose: np.ndarray, *, min_distance: float, min_interval: float) -> bool:
-        xy = np.asarray(pose)[:2, 3]
-        if self._last_ns is not None:
-            if min_interval > 0 and stamp_ns - self._last_ns < min_interval * NS_PER_S:
-                return False
-            if min_distance > 0 and self._last_xy is not None and float(np.hypot(*(xy - self._last_xy))) < min_distance:
-                return False
-        self._last_ns, self._last_xy = stamp_ns, xy.copy()
-        return True

@@ -5,6 +5,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ..errors import InvalidValueError
+
 
 class MultiHeadSelfAttention(nn.Module):
     """B x L x C -> B x L x C; heads take consecutive channel groups, no mask, no dropout."""
@@ -12,7 +14,7 @@ class MultiHeadSelfAttention(nn.Module):
     def __init__(self, channels: int, heads: int = 4) -> None:
         super().__init__()
         if channels % heads:
-            raise ValueError(f"channels={channels} is not divisible by heads={heads}")
+            raise InvalidValueError(f"channels={channels} is not divisible by heads={heads}")
         self.heads = heads
         self.w_q = nn.Linear(channels, channels)
         self.w_k = nn.Linear(channels, channels)

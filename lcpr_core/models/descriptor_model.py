@@ -5,6 +5,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ..errors import InvalidValueError
+
 PADDINGS = ("zeros", "circular")
 
 
@@ -14,7 +16,7 @@ class RIConv(nn.Module):
     def __init__(self, in_ch: int, out_ch: int, padding: str = "zeros") -> None:
         super().__init__()
         if padding not in PADDINGS:
-            raise ValueError(f"padding={padding!r}; accepted: {', '.join(PADDINGS)}")
+            raise InvalidValueError(f"padding={padding!r}; accepted: {', '.join(PADDINGS)}")
         self.mode = "constant" if padding == "zeros" else "circular"
         self.conv = nn.Sequential(nn.Conv1d(in_ch, out_ch, 3), nn.BatchNorm1d(out_ch), nn.LeakyReLU(0.1))
 

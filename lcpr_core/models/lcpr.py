@@ -7,7 +7,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..errors import InputShapeError
+from ..errors import InputShapeError, InvalidValueError
 from .eca import ECA
 from .fusion import Fusion, camera_columns
 from .netvlad import NetVLAD
@@ -59,7 +59,8 @@ class LCPR(nn.Module):
         super().__init__()
         _check_sizes(num_cameras, image_size, range_size)
         if not (isinstance(width, (int, float)) and 0 < width <= 4):
-            raise ValueError(f"width={width!r}; accepted: a channel multiplier in (0, 4], e.g. 1.0 (released) or 0.25")
+            raise InvalidValueError(
+                f"width={width!r}; accepted: a channel multiplier in (0, 4], e.g. 1.0 (released) or 0.25")
         self.num_cameras = num_cameras
         self.image_size = tuple(image_size)
         self.range_size = tuple(range_size)
@@ -141,8 +142,8 @@ class LCPR(nn.Module):
 
 def _check_sizes(num_cameras: int, image_size: tuple[int, int], range_size: tuple[int, int]) -> None:
     if num_cameras < 1:
-        raise ValueError(f"num_cameras={num_cameras}; it must be at least 1")
+        raise InvalidValueError(f"num_cameras={num_cameras}; it must be at least 1")
     if len(image_size) != 2 or image_size[0] % 32 or image_size[1] % 32:
-        raise ValueError(f"image_size={image_size}; height and width must be multiples of 32 (e.g. 256 x 704)")
+        raise InvalidValueError(f"image_size={image_size}; height and width must be multiples of 32 (e.g. 256 x 704)")
     if len(range_size) != 2 or range_size[0] % 8 or range_size[1] % 8:
-        raise ValueError(f"range_size={range_size}; height and width must be multiples of 8 (e.g. 32 x 1056)")
+        raise InvalidValueError(f"range_size={range_size}; height and width must be multiples of 8 (e.g. 32 x 1056)")

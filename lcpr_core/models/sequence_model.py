@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from ..errors import InputShapeError
+from ..errors import InputShapeError, InvalidValueError
 from .transformer import Block
 
 
@@ -92,9 +92,9 @@ class SequenceModel(nn.Module):
     ) -> None:
         super().__init__()
         if sectors % 2:
-            raise ValueError(f"sectors={sectors}; it must be even (tokens cover two sectors)")
+            raise InvalidValueError(f"sectors={sectors}; it must be even (tokens cover two sectors)")
         if not 0 <= mask_ratio < 1:
-            raise ValueError(f"mask_ratio={mask_ratio}; it must be in [0, 1)")
+            raise InvalidValueError(f"mask_ratio={mask_ratio}; it must be in [0, 1)")
         self.frames, self.rows, self.sectors, self.mask_ratio = frames, rows, sectors, mask_ratio
         self.straight_through_clamp = straight_through_clamp
         self.encoder = Encoder(frames, rows, sectors, dim, heads, depth)

@@ -5,6 +5,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ..errors import InvalidValueError
+
 
 class Attention(nn.Module):
     """B x T x C -> B x T x C; ``qkv`` holds q, k, v in that order, heads of C/heads channels."""
@@ -12,7 +14,7 @@ class Attention(nn.Module):
     def __init__(self, dim: int, heads: int) -> None:
         super().__init__()
         if dim % heads:
-            raise ValueError(f"dim={dim} is not divisible by heads={heads}")
+            raise InvalidValueError(f"dim={dim} is not divisible by heads={heads}")
         self.heads = heads
         self.qkv = nn.Linear(dim, 3 * dim, bias=False)
         self.proj = nn.Linear(dim, dim)

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputShapeError
+from ..errors import InputShapeError, InvalidValueError
 
 
 @dataclass(frozen=True)
@@ -45,7 +45,7 @@ class LidarGeometry:
     def __post_init__(self) -> None:
         values = dataclasses.astuple(self)
         if not all(np.isfinite(values)):
-            raise ValueError(f"lidar_geometry {self}: every value must be finite")
+            raise InvalidValueError(f"lidar_geometry {self}: every value must be finite")
         _check_config(self.preset(1, 1), prefix="lidar_geometry.")
 
     def preset(self, height: int, width: int) -> LidarPreset:
@@ -77,7 +77,7 @@ def lidar_preset(name: str) -> LidarPreset:
     try:
         return PRESETS[name]
     except KeyError as err:
-        raise ValueError(f"unknown LiDAR preset {name!r}; accepted: {', '.join(sorted(PRESETS))}") from err
+        raise InvalidValueError(f"unknown LiDAR preset {name!r}; accepted: {', '.join(sorted(PRESETS))}") from err
 
 
 def range_image(
@@ -150,10 +150,11 @@ def rotate_z(points: np.ndarray, angle_deg: float) -> np.ndarray:
 
 def _check_config(cfg: LidarPreset, *, prefix: str = "") -> None:
     if cfg.height < 1 or cfg.width < 1:
-        raise ValueError(f"range image size {cfg.height} x {cfg.width}; both must be positive")
+        raise InvalidValueError(f"range image size {cfg.height} x {cfg.width}; both must be positive")
     if not cfg.fov_up_deg > cfg.fov_down_deg:
-        raise ValueError(f"{prefix}fov_up_deg={cfg.fov_up_deg} must be above {prefix}fov_down_deg={cfg.fov_down_deg}")
+        raise InvalidValueError(
+            f"{prefix}fov_up_deg={cfg.fov_up_deg} must be above {prefix}fov_down_deg={cfg.fov_down_deg}")
     if not cfg.max_range > 0:
-        raise ValueError(f"{prefix}max_range={cfg.max_range}; it must be positive (metres)")
+        raise InvalidValueError(f"{prefix}max_range={cfg.max_range}; it must be positive (metres)")
     if cfg.min_xy < 0:
-        raise ValueError(f"{prefix}min_xy={cfg.min_xy}; it must be >= 0 (metres)")
+        raise InvalidValueError(f"{prefix}min_xy={cfg.min_xy}; it must be >= 0 (metres)")

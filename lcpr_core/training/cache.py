@@ -30,17 +30,15 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import LcprError
+from msg_tools.progress import progress_bar
+
+from ..errors import CacheError
 from ..preprocess import lidar_preset, range_image
 from ..preprocess.camera import to_pil
 from .config import InputConfig
 
 CACHE_VERSION = 1
 ARRAYS = ("images", "cameras", "ranges", "poses", "stamps", "groups")
-
-
-class CacheError(LcprError):
-    """A bag could not be turned into training samples."""
 
 
 @dataclass(frozen=True)
@@ -141,12 +139,11 @@ def build_cache(
     count, frames, without_pose = 0, 0, 0
     per_bag: list[int] = []
     for group, (bag, stream) in enumerate(zip(bags, streams, strict=True)):
-        bar = _bar(len(stream), f"cache {Path(bag).name}", progress)
+        bar = progress_bar(len(stream), desc=f"cache {Path(bag).name}", unit="frame", enabled=progress)
         first = count
         try:
             for frame in stream:
-                if bar is not None:
-                    bar.update(1)
+                bar.update(1)
                 frames += 1
                 if frame.pose is None or not np.isfinite(frame.pose).all():
                     without_pose += 1
@@ -159,8 +156,7 @@ def build_cache(
                 count += 1
         finally:
             stream.close()
-            if bar is not None:
-                bar.close()
+            bar.close()
         per_bag.append(count - first)
     for array in arrays.values():
         array.flush()
@@ -193,9 +189,3 @@ def _camera_slots(cameras: Sequence[Any], inputs: InputConfig) -> tuple[np.ndarr
     return out, present
 
 
-def _bar(total: int, desc: str, enabled: bool) -> Any:
-    if not enabled:
-        return None
-    from tqdm import tqdm
-
-    return tqdm(total=total, desc=desc, unit="frame", dynamic_ncols=True)

@@ -21,7 +21,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from ..errors import LcprError
+from ..errors import InvalidValueError, LcprError
 from ..preprocess import PRESETS as LIDAR_PRESETS
 from .cache import build_cache
 from .config import NEGATIVE_RULES, PRESETS, MiningConfig, OptimConfig, SplitConfig, TrainConfig, input_preset
@@ -104,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
               f"{'float32' if args.export_fp32 else 'float16'})")
         return 0
     if not args.bags:
-        raise ValueError("no bags given; usage: lcpr_train BAG [BAG ...] --out DIR")
+        raise InvalidValueError("no bags given; usage: lcpr_train BAG [BAG ...] --out DIR")
     config = config_from_args(args)
     start = time.perf_counter()
     cache = build_cache(args.bags, args.cache or args.out / "cache", inputs=config.inputs, progress=not args.quiet)

@@ -4,6 +4,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
+from ..errors import InvalidValueError
 from ..preprocess import lidar_preset
 
 NEGATIVE_RULES = ("violating", "absolute")
@@ -22,15 +23,15 @@ class InputConfig:
     def __post_init__(self) -> None:
         lidar_preset(self.lidar)  # raises with the accepted names
         if self.num_cameras < 1:
-            raise ValueError(f"num_cameras={self.num_cameras}; it must be at least 1")
+            raise InvalidValueError(f"num_cameras={self.num_cameras}; it must be at least 1")
         if len(self.image_size) != 2 or any(v < 32 or v % 32 for v in self.image_size):
-            raise ValueError(f"image_size={self.image_size}; accepted: (height, width), multiples of 32, "
-                             f"e.g. (64, 192) or (256, 704)")
+            raise InvalidValueError(f"image_size={self.image_size}; accepted: (height, width), multiples of 32, "
+                                    f"e.g. (64, 192) or (256, 704)")
         if len(self.range_size) != 2 or any(v < 8 or v % 8 for v in self.range_size):
-            raise ValueError(f"range_size={self.range_size}; accepted: (height, width), multiples of 8, "
-                             f"e.g. (16, 288) or (32, 1056)")
+            raise InvalidValueError(f"range_size={self.range_size}; accepted: (height, width), multiples of 8, "
+                                    f"e.g. (16, 288) or (32, 1056)")
         if not 0 < self.width <= 4:
-            raise ValueError(f"width={self.width}; accepted: a channel multiplier in (0, 4], e.g. 0.25 or 1.0")
+            raise InvalidValueError(f"width={self.width}; accepted: a channel multiplier in (0, 4], e.g. 0.25 or 1.0")
 
     def model_entry(self) -> dict[str, Any]:
         """The 'config' entry written next to 'net' in checkpoints (read back by build_model)."""
@@ -50,7 +51,7 @@ def input_preset(name: str) -> InputConfig:
     try:
         return PRESETS[name]
     except KeyError as err:
-        raise ValueError(f"unknown input preset {name!r}; accepted: {', '.join(PRESETS)}") from err
+        raise InvalidValueError(f"unknown input preset {name!r}; accepted: {', '.join(PRESETS)}") from err
 
 
 @dataclass(frozen=True)
@@ -65,12 +66,13 @@ class SplitConfig:
 
     def __post_init__(self) -> None:
         if not 0 < self.positive_radius < self.negative_radius:
-            raise ValueError(f"positive_radius={self.positive_radius}, negative_radius={self.negative_radius}; "
-                             f"accepted: 0 < positive_radius < negative_radius (paper: 9 and 18 m)")
+            raise InvalidValueError(f"positive_radius={self.positive_radius}, negative_radius={self.negative_radius}; "
+                                    f"accepted: 0 < positive_radius < negative_radius (paper: 9 and 18 m)")
         if not self.exclude_recent_s >= 0:
-            raise ValueError(f"exclude_recent_s={self.exclude_recent_s}; it must be >= 0 seconds")
+            raise InvalidValueError(f"exclude_recent_s={self.exclude_recent_s}; it must be >= 0 seconds")
         if len(self.fractions) != 3 or any(f < 0 for f in self.fractions) or abs(sum(self.fractions) - 1) > 1e-6:
-            raise ValueError(f"fractions={self.fractions}; accepted: three shares (train, val, test) >= 0 summing to 1")
+            raise InvalidValueError(
+                f"fractions={self.fractions}; accepted: three shares (train, val, test) >= 0 summing to 1")
 
 
 @dataclass(frozen=True)
@@ -84,13 +86,13 @@ class MiningConfig:
 
     def __post_init__(self) -> None:
         if self.negatives < 1:
-            raise ValueError(f"negatives={self.negatives}; it must be at least 1 (paper: 6)")
+            raise InvalidValueError(f"negatives={self.negatives}; it must be at least 1 (paper: 6)")
         if not self.margin > 0:
-            raise ValueError(f"margin={self.margin}; it must be positive (paper: 0.5)")
+            raise InvalidValueError(f"margin={self.margin}; it must be positive (paper: 0.5)")
         if self.pool < self.negatives:
-            raise ValueError(f"pool={self.pool}; it must be at least negatives={self.negatives}")
+            raise InvalidValueError(f"pool={self.pool}; it must be at least negatives={self.negatives}")
         if self.rule not in NEGATIVE_RULES:
-            raise ValueError(f"rule={self.rule!r}; accepted: {', '.join(NEGATIVE_RULES)}")
+            raise InvalidValueError(f"rule={self.rule!r}; accepted: {', '.join(NEGATIVE_RULES)}")
 
 
 @dataclass(frozen=True)
@@ -107,19 +109,19 @@ class OptimConfig:
 
     def __post_init__(self) -> None:
         if self.epochs < 1:
-            raise ValueError(f"epochs={self.epochs}; it must be at least 1")
+            raise InvalidValueError(f"epochs={self.epochs}; it must be at least 1")
         if not self.lr > 0:
-            raise ValueError(f"lr={self.lr}; it must be positive (paper: 1e-5)")
+            raise InvalidValueError(f"lr={self.lr}; it must be positive (paper: 1e-5)")
         if not 0 < self.gamma <= 1:
-            raise ValueError(f"gamma={self.gamma}; accepted: (0, 1] (paper: 0.8)")
+            raise InvalidValueError(f"gamma={self.gamma}; accepted: (0, 1] (paper: 0.8)")
         if self.step_epochs < 1:
-            raise ValueError(f"step_epochs={self.step_epochs}; it must be at least 1 (paper: 10)")
+            raise InvalidValueError(f"step_epochs={self.step_epochs}; it must be at least 1 (paper: 10)")
         if self.queries_per_batch < 1:
-            raise ValueError(f"queries_per_batch={self.queries_per_batch}; it must be at least 1")
+            raise InvalidValueError(f"queries_per_batch={self.queries_per_batch}; it must be at least 1")
         if self.queries_per_epoch < 0:
-            raise ValueError(f"queries_per_epoch={self.queries_per_epoch}; it must be >= 0 (0 = all)")
+            raise InvalidValueError(f"queries_per_epoch={self.queries_per_epoch}; it must be >= 0 (0 = all)")
         if self.weight_decay < 0:
-            raise ValueError(f"weight_decay={self.weight_decay}; it must be >= 0")
+            raise InvalidValueError(f"weight_decay={self.weight_decay}; it must be >= 0")
 
 
 @dataclass(frozen=True)
@@ -138,12 +140,12 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         if self.threads < 1:
-            raise ValueError(f"threads={self.threads}; it must be at least 1")
+            raise InvalidValueError(f"threads={self.threads}; it must be at least 1")
         if self.eval_batch < 1:
-            raise ValueError(f"eval_batch={self.eval_batch}; it must be at least 1")
+            raise InvalidValueError(f"eval_batch={self.eval_batch}; it must be at least 1")
         if self.imagenet and self.inputs.width != 1.0:
-            raise ValueError(f"imagenet={self.imagenet!r} needs width 1.0 (torchvision resnet18 shapes); "
-                             f"got width={self.inputs.width}")
+            raise InvalidValueError(f"imagenet={self.imagenet!r} needs width 1.0 (torchvision resnet18 shapes); "
+                                    f"got width={self.inputs.width}")
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

@@ -5,6 +5,8 @@ from collections.abc import Sequence
 
 import torch
 
+from ..errors import InvalidValueError
+
 
 def triplet_loss(
     query: torch.Tensor, positive: torch.Tensor, negatives: torch.Tensor, *, margin: float = 0.5
@@ -28,5 +30,5 @@ def batch_triplet_loss(descriptors: torch.Tensor, counts: Sequence[int], *, marg
                                    margin=margin))
         at += 2 + k
     if at != len(descriptors):
-        raise ValueError(f"{len(descriptors)} descriptors but counts {list(counts)} account for {at}")
+        raise InvalidValueError(f"{len(descriptors)} descriptors but counts {list(counts)} account for {at}")
     return torch.stack(losses).mean()

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..errors import InvalidValueError
 from .config import MiningConfig
 from .split import Split
 
@@ -49,7 +50,7 @@ class MiningResult:
 def closest_positive(query_desc: np.ndarray, positive_ids: np.ndarray, positive_desc: np.ndarray) -> tuple[int, float]:
     """(sample index, descriptor distance) of the positive closest to the query in descriptor space."""
     if len(positive_ids) == 0:
-        raise ValueError("no positives given; a query needs at least one to be mined")
+        raise InvalidValueError("no positives given; a query needs at least one to be mined")
     d = np.linalg.norm(positive_desc - query_desc, axis=1)
     best = int(np.argmin(d))
     return int(positive_ids[best]), float(d[best])

@@ -5,7 +5,7 @@ import os
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from ..atomic import atomic_path
+from ..atomic import save_figure
 
 
 def plot_training_curve(history: Sequence[Mapping[str, Any]], path: str | os.PathLike[str], *,
@@ -29,6 +29,4 @@ def plot_training_curve(history: Sequence[Mapping[str, Any]], path: str | os.Pat
     ax_rec.grid(alpha=0.3)
     ax_rec.legend(loc="lower right")
     fig.suptitle(title)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
+    save_figure(fig, path)

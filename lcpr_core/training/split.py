@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import InvalidValueError
 from .config import SplitConfig
 
 QUERY_SETS = ("train", "val", "test")
@@ -36,7 +37,7 @@ class Split:
 
     def queries(self, name: str) -> np.ndarray:
         if name not in QUERY_SETS:
-            raise ValueError(f"query set {name!r}; accepted: {', '.join(QUERY_SETS)}")
+            raise InvalidValueError(f"query set {name!r}; accepted: {', '.join(QUERY_SETS)}")
         return getattr(self, name)
 
     def positives(self, query: int) -> np.ndarray:
@@ -76,10 +77,11 @@ def split_samples(positions: np.ndarray, stamps: np.ndarray, groups: np.ndarray,
     t = np.asarray(stamps, np.float64)
     g = np.asarray(groups, np.int64)
     if pos.ndim != 2 or not (len(pos) == len(t) == len(g)):
-        raise ValueError(f"positions {np.shape(positions)}, stamps {np.shape(stamps)}, groups {np.shape(groups)}; "
-                         f"expected N x 2|3, N and N")
+        raise InvalidValueError(
+            f"positions {np.shape(positions)}, stamps {np.shape(stamps)}, groups {np.shape(groups)}; "
+            f"expected N x 2|3, N and N")
     if not (np.isfinite(pos).all() and np.isfinite(t).all()):
-        raise ValueError("positions and stamps must be finite")
+        raise InvalidValueError("positions and stamps must be finite")
     is_query = np.zeros(len(t), bool)
     for group in np.unique(g):
         members = np.flatnonzero(g == group)

@@ -26,9 +26,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from msg_tools.progress import progress_bar
+
 from ..atomic import atomic_path
 from ..checkpoint import check_state_dict, init_from_imagenet, save_checkpoint
-from ..errors import CheckpointError
+from ..errors import CheckpointError, InvalidValueError
 from ..models import LCPR
 from .config import TrainConfig
 from .dataset import TrainingData
@@ -77,8 +79,8 @@ class Trainer:
         self.scheduler = torch.optim.lr_scheduler.StepLR(self.optimizer, step_size=opt.step_epochs, gamma=opt.gamma)
         self._descriptors: np.ndarray | None = None
         if len(self.data.split.train) == 0 or len(self.data.split.val) == 0:
-            raise ValueError(f"the split has {self.data.split.summary()}; training needs train and val queries "
-                             f"(record drives that revisit places, or change the split fractions)")
+            raise InvalidValueError(f"the split has {self.data.split.summary()}; training needs train and val queries "
+                                    f"(record drives that revisit places, or change the split fractions)")
 
     # ------------------------------------------------------------------ checkpoints
     def _payload_extra(self, *, full: bool) -> dict[str, Any]:
@@ -123,15 +125,13 @@ class Trainer:
         out = np.full((len(self.data), self.model.descriptor_dim), np.nan, np.float32)
         samples = np.unique(np.asarray(samples, np.int64))
         batch = self.config.eval_batch
-        bar = _bar(len(samples), desc, self.progress)
+        bar = progress_bar(len(samples), desc=desc, unit="sample", enabled=self.progress, leave=False)
         for lo in range(0, len(samples), batch):
             idx = samples[lo:lo + batch]
             images, ranges = self.data.inputs(idx)
             out[idx] = self.model(images.to(self.device), ranges.to(self.device)).float().cpu().numpy()
-            if bar is not None:
-                bar.update(len(idx))
-        if bar is not None:
-            bar.close()
+            bar.update(len(idx))
+        bar.close()
         return out
 
     def epoch_queries(self, epoch: int) -> np.ndarray:
@@ -162,17 +162,15 @@ class Trainer:
         triplets = [mined.triplets[i] for i in rng.permutation(len(mined.triplets))]
         self.model.train()
         losses: list[float] = []
-        bar = _bar(len(triplets), f"epoch {self.epoch}", self.progress)
+        bar = progress_bar(len(triplets), desc=f"epoch {self.epoch}", unit="q", enabled=self.progress, leave=False)
         step = cfg.optim.queries_per_batch
         for lo in range(0, len(triplets), step):
             group = triplets[lo:lo + step]
             loss = self.step(group)
             losses.append(loss)
-            if bar is not None:
-                bar.update(len(group))
-                bar.set_postfix(loss=f"{loss:.4f}", refresh=False)
-        if bar is not None:
-            bar.close()
+            bar.update(len(group))
+            bar.set_postfix(loss=f"{loss:.4f}", refresh=False)
+        bar.close()
         self.scheduler.step()
         stats = mined.stats
         return {"loss": float(np.mean(losses)) if losses else None, "train_s": round(time.perf_counter() - start, 1),
@@ -269,10 +267,3 @@ def _pct(v: float) -> str:
     return "  -  " if v is None or (isinstance(v, float) and math.isnan(v)) else f"{100 * v:5.1f}"
 
 
-def _bar(total: int, desc: str, enabled: bool) -> Any:
-    if not enabled:
-        return None
-    from tqdm import tqdm
-
-    return tqdm(total=total, desc=desc, unit="q" if desc.startswith("epoch") else "sample", dynamic_ncols=True,
-                leave=False)

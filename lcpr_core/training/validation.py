@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import InvalidValueError
 from .split import Split
 
 
@@ -24,7 +25,7 @@ def split_recall(split: Split, descriptors: np.ndarray, queries: np.ndarray,
     :meth:`Split.excluded` names (same bag, too recent); a hit is a :meth:`Split.positives` entry."""
     ns = sorted({int(n) for n in n_values})
     if not ns or ns[0] < 1:
-        raise ValueError(f"n_values={list(n_values)}; accepted: positive integers")
+        raise InvalidValueError(f"n_values={list(n_values)}; accepted: positive integers")
     db = split.database
     db_desc = np.asarray(descriptors[db], np.float64)
     hits = {n: 0 for n in ns}

@@ -39,7 +39,7 @@ from torch import nn
 
 from ..atomic import atomic_path
 from ..checkpoint import check_state_dict, read_state_dict
-from ..errors import CheckpointError
+from ..errors import CheckpointError, UnsafePickleError
 from ..models import DescriptorModel, SequenceModel
 
 __all__ = [
@@ -55,10 +55,6 @@ _STORAGE_DTYPES: dict[str, torch.dtype] = {
     "BoolStorage": torch.bool, "UntypedStorage": torch.uint8,
 }
 _STATE_KEYS = ("state_dict", "net", "model", "sequence_model")
-
-
-class UnsafePickleError(CheckpointError):
-    """A pickle names a global the restricted unpickler does not allow; nothing from it ran."""
 
 
 @dataclass(frozen=True)

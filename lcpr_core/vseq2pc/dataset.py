@@ -30,7 +30,7 @@ from msg_tools.bags import read_static_transforms
 from msg_tools.errors import MsgToolsError
 
 from ..atomic import atomic_path
-from ..errors import InputShapeError
+from ..errors import InputShapeError, InvalidValueError
 from ..preprocess.structure import camera_feature, structure_feature
 from .sequence import OFFSETS, sequence_table
 
@@ -90,13 +90,15 @@ class FeatureCache:
             with np.load(where, allow_pickle=False) as npz:
                 missing = [k for k in _KEYS if k not in npz.files]
                 if missing:
-                    raise ValueError(f"feature cache {where} lacks {', '.join(missing)}; expected {', '.join(_KEYS)}")
+                    raise InvalidValueError(
+                        f"feature cache {where} lacks {', '.join(missing)}; expected {', '.join(_KEYS)}")
                 data = {k: npz[k] for k in _KEYS}
         except FileNotFoundError as err:
-            raise ValueError(f"feature cache {where} does not exist (make one with vseq2pc_cache)") from err
+            raise InvalidValueError(f"feature cache {where} does not exist (make one with vseq2pc_cache)") from err
         header = json.loads(str(data["header"].item()))
         if header.get("format") != _FORMAT or header.get("schema_version") != CACHE_SCHEMA_VERSION:
-            raise ValueError(f"{where} is not a {_FORMAT} file of schema {CACHE_SCHEMA_VERSION} (header {header})")
+            raise InvalidValueError(
+                f"{where} is not a {_FORMAT} file of schema {CACHE_SCHEMA_VERSION} (header {header})")
         return cls(camera=data["camera"].astype(np.float32), camera_valid=data["camera_valid"].astype(bool),
                    lidar=data["lidar"].astype(np.float32), poses=data["poses"].astype(np.float64),
                    stamps=data["stamps"].astype(np.float64), source=str(header.get("source", "")))
@@ -107,12 +109,12 @@ def camera_extrinsics(bag: str | os.PathLike[str], *, topics: Topics = KITTI_TOP
     """(K 3 x 3, lidar_T_cam 4 x 4) of the bag's first camera, from its CameraInfo and /tf_static."""
     models = read_camera_models(bag, topics=topics)
     if not models or models[0] is None:
-        raise ValueError(f"{os.fspath(bag)} has no CameraInfo on {topics.camera_info[:1]}; the camera "
-                         "intrinsics are needed to back-project depth")
+        raise InvalidValueError(f"{os.fspath(bag)} has no CameraInfo on {topics.camera_info[:1]}; the camera "
+                                "intrinsics are needed to back-project depth")
     model = models[0]
     base_T_lidar = read_static_transforms(bag, topic=topics.tf_static).lookup("base_link", lidar_frame)
     if base_T_lidar is None:
-        raise ValueError(f"{os.fspath(bag)}: no {topics.tf_static} transform base_link -> {lidar_frame!r}")
+        raise InvalidValueError(f"{os.fspath(bag)}: no {topics.tf_static} transform base_link -> {lidar_frame!r}")
     return np.asarray(model.K, np.float64), np.linalg.inv(base_T_lidar) @ np.asarray(model.base_T_cam, np.float64)
 
 
@@ -125,8 +127,8 @@ def cache_from_frames(frames: Iterable[SensorFrame], *, K: np.ndarray, lidar_T_c
             continue  # no ground truth: neither a query nor a database scan can be labelled
         names = frame.cloud.dtype.names or ()
         if "label" not in names:
-            raise ValueError(f"the cloud at {frame.stamp:.3f} s has fields {names}; VSeq2PC needs per-point "
-                             "SemanticKITTI labels ('label')")
+            raise InvalidValueError(f"the cloud at {frame.stamp:.3f} s has fields {names}; VSeq2PC needs per-point "
+                                    "SemanticKITTI labels ('label')")
         lidars.append(structure_feature(frame.xyz, np.asarray(frame.cloud["label"])))
         image = frame.cameras[camera] if camera < len(frame.cameras) else None
         if image is not None and image.depth is not None and image.labels is not None:
@@ -138,7 +140,7 @@ def cache_from_frames(frames: Iterable[SensorFrame], *, K: np.ndarray, lidar_T_c
         poses.append(np.asarray(frame.pose, np.float64))
         stamps.append(frame.stamp)
     if not stamps:
-        raise ValueError("no frame with a pose; a feature cache needs ground-truth poses")
+        raise InvalidValueError("no frame with a pose; a feature cache needs ground-truth poses")
     return FeatureCache(camera=np.stack(cams).astype(np.float32), camera_valid=np.array(valid, bool),
                         lidar=np.stack(lidars).astype(np.float32), poses=np.stack(poses),
                         stamps=np.array(stamps, np.float64), source=source)
@@ -154,7 +156,7 @@ def build_cache(bag: str | os.PathLike[str], *, topics: Topics = KITTI_TOPICS, l
         first.append(frame)
         break
     if not first:
-        raise ValueError(f"{os.fspath(bag)} holds no synchronised frame on {topics.lidar} and {topics.cameras}")
+        raise InvalidValueError(f"{os.fspath(bag)} holds no synchronised frame on {topics.lidar} and {topics.cameras}")
     K, lidar_T_cam = camera_extrinsics(bag, topics=topics, lidar_frame=first[0].lidar_frame_id)
 
     def limited() -> Iterable[SensorFrame]:

@@ -29,7 +29,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..atomic import atomic_path
+from ..atomic import atomic_path, save_figure
+from ..errors import InvalidValueError
 from ..evaluation import pr_sweep, ranked_protocol
 from ..metrics import PRResult
 from ..preprocess.structure import CAMERA_SECTORS
@@ -52,10 +53,10 @@ class EvalConfig:
 
     def __post_init__(self) -> None:
         if self.min_frame_gap < 0 or self.negatives_per_positive < 1 or not self.loop_radius > 0:
-            raise ValueError(f"min_frame_gap={self.min_frame_gap} (>= 0), negatives_per_positive="
-                             f"{self.negatives_per_positive} (>= 1), loop_radius={self.loop_radius} (> 0)")
+            raise InvalidValueError(f"min_frame_gap={self.min_frame_gap} (>= 0), negatives_per_positive="
+                                    f"{self.negatives_per_positive} (>= 1), loop_radius={self.loop_radius} (> 0)")
         if not self.n_values or min(self.n_values) < 1:
-            raise ValueError(f"n_values={self.n_values}; expected positive integers")
+            raise InvalidValueError(f"n_values={self.n_values}; expected positive integers")
 
 
 @dataclass
@@ -104,7 +105,7 @@ def evaluate(net: Vseq2pcNet, cache: FeatureCache, *, name: str, config: EvalCon
     db.add(slices, stamps=cache.stamps, poses=cache.poses)
 
     def pair_scores(q: np.ndarray, s: np.ndarray) -> np.ndarray:
-        return pair_logits(net, d_seq, row_of[q], slices, s)
+        return chunked_pair_logits(net, d_seq, row_of[q], slices, s)
 
     def ranked(q: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         search = SearchConfig(k=k, exclude_recent_s=None, exclude_recent_rows=config.min_frame_gap)
@@ -148,7 +149,7 @@ def evaluate_feature_match(cache: FeatureCache, *, config: EvalConfig = EvalConf
 def _queries(cache: FeatureCache) -> np.ndarray:
     queries = np.flatnonzero(cache.sequences()[:, 0] >= 0)
     if len(queries) == 0:
-        raise ValueError(f"{cache.source or 'the cache'} has no complete query sequence")
+        raise InvalidValueError(f"{cache.source or 'the cache'} has no complete query sequence")
     return queries
 
 
@@ -189,7 +190,7 @@ def _protocols(cache: FeatureCache, queries: np.ndarray, *, name: str, config: E
 
 
 @torch.inference_mode()
-def pair_logits(net: Vseq2pcNet, d_seq: np.ndarray, query_rows: np.ndarray, slices: np.ndarray,
+def chunked_pair_logits(net: Vseq2pcNet, d_seq: np.ndarray, query_rows: np.ndarray, slices: np.ndarray,
                 scan_rows: np.ndarray, *, chunk: int = 8192) -> np.ndarray:
     """Max-slice logits of the pairs (d_seq[query_rows[i]], slices[scan_rows[i]]), gathered chunk by chunk."""
     out = np.empty(len(query_rows), np.float32)
@@ -232,9 +233,7 @@ def plot_pr(results: Sequence[MethodEval], path: str | os.PathLike[str], *, titl
     ax.title.set_fontsize(9)
     ax.grid(alpha=0.3)
     ax.legend(loc="upper right", fontsize=8)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
+    save_figure(fig, path)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -268,7 +267,7 @@ def _networks(args: argparse.Namespace) -> list[tuple[str, Vseq2pcNet]]:
         seq_file = seq_file or str(Path(args.weights_dir) / f"{prefix}sequence_model.pth")
         desc_file = desc_file or str(Path(args.weights_dir) / f"{prefix}descriptor_model.pth")
     if (seq_file is None) != (desc_file is None):
-        raise ValueError("give both --sequence-weights and --descriptor-weights (or --weights-dir)")
+        raise InvalidValueError("give both --sequence-weights and --descriptor-weights (or --weights-dir)")
     if args.untrained or seq_file is None:
         nets.append((f"untrained (seed {args.init_seed})", Vseq2pcNet.seeded(args.init_seed)))
     if seq_file is not None:

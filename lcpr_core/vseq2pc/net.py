@@ -12,7 +12,7 @@ from ..errors import InputShapeError
 from ..models import DescriptorModel, SequenceModel
 from ..preprocess.structure import CAMERA_SECTORS
 from .checkpoint import load_descriptor_state_dict, load_sequence_state_dict
-from .init import seeded_models
+from .initialisation import seeded_models
 
 __all__ = ["DESCRIPTOR_DIM", "SLICES", "Vseq2pcNet", "scan_slice_descriptors", "slice_tensor", "weights_id"]
 

@@ -11,6 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import InvalidValueError
+
 __all__ = ["PairSet", "TrainPairConfig", "evaluation_pairs", "place_label", "planar_distances", "training_pairs"]
 
 POSITIVE_RADIUS = 3.0
@@ -60,9 +62,9 @@ class TrainPairConfig:
 
     def __post_init__(self) -> None:
         if self.positives < 1 or self.negatives < 0:
-            raise ValueError(f"positives={self.positives}, negatives={self.negatives}; expected >= 1 and >= 0")
+            raise InvalidValueError(f"positives={self.positives}, negatives={self.negatives}; expected >= 1 and >= 0")
         if not 0.0 <= self.revisit_fraction <= 1.0:
-            raise ValueError(f"revisit_fraction={self.revisit_fraction}; expected a share in [0, 1]")
+            raise InvalidValueError(f"revisit_fraction={self.revisit_fraction}; expected a share in [0, 1]")
 
     @property
     def scans_per_query(self) -> int:

@@ -30,7 +30,7 @@ import torch
 from numpy.typing import ArrayLike
 
 from ..atomic import atomic_path
-from ..errors import InputShapeError, MapError, MapSchemaError
+from ..errors import InputShapeError, InvalidValueError, MapError, MapSchemaError
 from ..growable import GrowableArray
 from ..models import DescriptorModel
 from ..preprocess.structure import structure_feature
@@ -60,15 +60,15 @@ class SearchConfig:
 
     def __post_init__(self) -> None:
         if isinstance(self.k, bool) or not isinstance(self.k, int) or self.k < 1:
-            raise ValueError(f"k={self.k!r}; expected a positive integer")
+            raise InvalidValueError(f"k={self.k!r}; expected a positive integer")
         if self.exclude_recent_s is not None and not self.exclude_recent_s >= 0:
-            raise ValueError(f"exclude_recent_s={self.exclude_recent_s!r}; expected seconds >= 0 or None")
+            raise InvalidValueError(f"exclude_recent_s={self.exclude_recent_s!r}; expected seconds >= 0 or None")
         if self.exclude_recent_rows < 0:
-            raise ValueError(f"exclude_recent_rows={self.exclude_recent_rows!r}; expected >= 0")
+            raise InvalidValueError(f"exclude_recent_rows={self.exclude_recent_rows!r}; expected >= 0")
         if self.prefilter is not None and self.prefilter < 1:
-            raise ValueError(f"prefilter={self.prefilter!r}; expected None (exact) or a positive scan count")
+            raise InvalidValueError(f"prefilter={self.prefilter!r}; expected None (exact) or a positive scan count")
         if self.chunk_scans < 1:
-            raise ValueError(f"chunk_scans={self.chunk_scans!r}; expected a positive scan count")
+            raise InvalidValueError(f"chunk_scans={self.chunk_scans!r}; expected a positive scan count")
 
 
 @dataclass(frozen=True)
@@ -94,9 +94,10 @@ class ScanMatch:
 
 
 def head_logits(head: DescriptorModel, query: torch.Tensor, slices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(288,) query, (n, 8, 288) slice descriptors -> (n,) max-slice logits and (n,) best slice."""
-    logits = head.logit(query, slices)  # n x 8, broadcast over the scans and slices
-    best = logits.max(dim=1)
+    """The max-slice rule (every use of it): a query (288,), or (..., 1, 288) beside its scans, against
+    (..., 8, 288) slice descriptors -> the best slice's logit and its index, each (...)."""
+    logits = head.logit(query, slices)  # ... x 8, broadcast over the scans and slices
+    best = logits.max(dim=-1)
     return best.values, best.indices
 
 

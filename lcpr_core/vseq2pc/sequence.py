@@ -17,7 +17,7 @@ from typing import cast
 
 import numpy as np
 
-from ..errors import InputShapeError
+from ..errors import InputShapeError, InvalidValueError
 from ..preprocess.structure import camera_feature
 
 __all__ = ["OFFSETS", "SequenceBatch", "SequenceBuilder", "SequenceConfig", "sequence_table", "travelled_distance"]
@@ -86,11 +86,11 @@ class SequenceConfig:
     def __post_init__(self) -> None:
         offs = tuple(self.offsets)
         if not offs or any(not (o > 0) for o in offs) or any(b <= a for a, b in zip(offs, offs[1:], strict=False)):
-            raise ValueError(f"offsets={offs}; expected ascending positive metres, e.g. (5.0, 10.0, 15.0)")
+            raise InvalidValueError(f"offsets={offs}; expected ascending positive metres, e.g. (5.0, 10.0, 15.0)")
         if not self.min_query_spacing_m >= 0:
-            raise ValueError(f"min_query_spacing_m={self.min_query_spacing_m}; expected metres >= 0")
+            raise InvalidValueError(f"min_query_spacing_m={self.min_query_spacing_m}; expected metres >= 0")
         if self.max_pending < 1:
-            raise ValueError(f"max_pending={self.max_pending}; expected at least 1")
+            raise InvalidValueError(f"max_pending={self.max_pending}; expected at least 1")
 
 
 @dataclass(frozen=True)
@@ -170,7 +170,7 @@ class SequenceBuilder:
                 raise InputShapeError(f"feature has shape {f.shape}; expected 12 x 90 (camera_feature)")
         idx = self._next_index if index is None else int(index)
         if self._frames and idx <= self._frames[-1].index:
-            raise ValueError(f"frame index {idx} is not after the last one ({self._frames[-1].index})")
+            raise InvalidValueError(f"frame index {idx} is not after the last one ({self._frames[-1].index})")
         self._next_index = idx + 1
         xy = T[:2, 3].copy()
         if self._last_xy is not None:

@@ -51,7 +51,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..atomic import atomic_path
+from msg_tools.progress import progress_bar
+
+from ..atomic import atomic_path, save_figure
+from ..errors import InvalidValueError
 from ..evaluation import pr_sweep
 from ..models import DescriptorModel, SequenceModel
 from ..preprocess.structure import CAMERA_SECTORS
@@ -62,7 +65,7 @@ from .checkpoint import (
     save_sequence_weights,
 )
 from .dataset import FeatureCache
-from .init import seeded_models
+from .initialisation import seeded_models
 from .net import scan_slice_descriptors
 from .pairs import (
     NEGATIVE_RADIUS,
@@ -73,6 +76,7 @@ from .pairs import (
     planar_distances,
     training_pairs,
 )
+from .retrieval import head_logits
 
 __all__ = ["TrainConfig", "TrainData", "lr_at", "main", "pair_logits", "place_loss", "train"]
 
@@ -115,19 +119,19 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         if isinstance(self.caches, (str, os.PathLike)) or not self.caches:
-            raise ValueError(f"caches={self.caches!r}; expected one or more feature cache paths")
+            raise InvalidValueError(f"caches={self.caches!r}; expected one or more feature cache paths")
         object.__setattr__(self, "caches", tuple(os.fspath(c) for c in self.caches))
         for name in ("pretrain_epochs", "epochs", "val_negatives"):
             if getattr(self, name) < 0:
-                raise ValueError(f"{name}={getattr(self, name)}; expected >= 0")
+                raise InvalidValueError(f"{name}={getattr(self, name)}; expected >= 0")
         if self.batch < 1:
-            raise ValueError(f"batch={self.batch}; expected >= 1")
+            raise InvalidValueError(f"batch={self.batch}; expected >= 1")
         if not 0.0 <= self.val_fraction < 1.0:
-            raise ValueError(f"val_fraction={self.val_fraction}; expected a share in [0, 1)")
+            raise InvalidValueError(f"val_fraction={self.val_fraction}; expected a share in [0, 1)")
         if self.queries_per_epoch is not None and self.queries_per_epoch < 1:
-            raise ValueError(f"queries_per_epoch={self.queries_per_epoch}; expected None or >= 1")
+            raise InvalidValueError(f"queries_per_epoch={self.queries_per_epoch}; expected None or >= 1")
         if self.seq_base_lr <= 0 or self.desc_lr <= 0 or self.seq_warmup_epochs < 0:
-            raise ValueError("learning rates must be positive and seq_warmup_epochs >= 0")
+            raise InvalidValueError("learning rates must be positive and seq_warmup_epochs >= 0")
 
     @property
     def seq_lr(self) -> float:
@@ -217,11 +221,10 @@ def cross_logits(seq: SequenceModel, desc: DescriptorModel, frames: torch.Tensor
 
 
 def _best_slice(desc: DescriptorModel, d_seq: torch.Tensor, d_scan: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    logits = desc.logit(d_seq[:, None, None, :], d_scan)  # B x S x 8
-    best = logits.max(dim=2)
-    chosen = torch.gather(d_scan, 2, best.indices[..., None, None].expand(-1, -1, 1, d_scan.shape[-1]))[:, :, 0]
+    values, indices = head_logits(desc, d_seq[:, None, None, :], d_scan)  # B x S
+    chosen = torch.gather(d_scan, 2, indices[..., None, None].expand(-1, -1, 1, d_scan.shape[-1]))[:, :, 0]
     sq = ((d_seq[:, None, :] - chosen) ** 2).sum(dim=-1)
-    return best.values, sq
+    return values, sq
 
 
 def place_loss(logits: torch.Tensor, sq_dist: torch.Tensor, labels: torch.Tensor, *, margin: float,
@@ -276,11 +279,6 @@ def _batches(items: np.ndarray, size: int) -> list[np.ndarray]:
     return [items[i : i + size] for i in range(0, len(items), size)]
 
 
-def _bar(total: int, desc: str, enabled: bool) -> Any:
-    from tqdm import tqdm
-    return tqdm(total=total, desc=desc, unit="batch", leave=False, disable=not enabled, dynamic_ncols=True)
-
-
 def pretrain_epoch(run: Run, data: TrainData, epoch: int, rng: np.random.Generator) -> float:
     """One stage-1 epoch: MSE between F_seq and the query frame's forward LiDAR feature."""
     run.seq.train()
@@ -315,7 +313,8 @@ def _epoch(run: Run, data: TrainData, epoch: int, rng: np.random.Generator, *, s
     per_epoch = max(1, len(batches))
     total, warm = per_epoch * epochs, int(round(per_epoch * cfg.seq_warmup_epochs))
     losses: list[float] = []
-    with _bar(len(batches), f"stage {stage} epoch {epoch}/{epochs}", cfg.progress) as bar:
+    with progress_bar(len(batches), desc=f"stage {stage} epoch {epoch}/{epochs}", unit="batch",
+                      enabled=cfg.progress, leave=False) as bar:
         for i, q in enumerate(batches):
             _set_lr(run.seq_opt, lr_at((epoch - 1) * per_epoch + i, base=cfg.seq_lr, warmup_steps=warm,
                                        total_steps=total))
@@ -380,14 +379,13 @@ def validate(run: Run, data: TrainData, pairs: PairSet, *, stage: int) -> dict[s
                         for s in _batches(scans, 128)])
     qi = torch.from_numpy(np.searchsorted(queries, pairs.query))
     si = torch.from_numpy(np.searchsorted(scans, pairs.scan))
-    logits = run.desc.logit(d_seq[qi][:, None, :], d_scan[si])  # P x 8
-    best = logits.max(dim=1)
-    chosen = d_scan[si, best.indices]
+    values, indices = head_logits(run.desc, d_seq[qi][:, None, :], d_scan[si])  # P
+    chosen = d_scan[si, indices]
     sq = ((d_seq[qi] - chosen) ** 2).sum(dim=1)
     labels = torch.from_numpy(pairs.label.astype(np.float32))
-    loss = place_loss(best.values, sq, labels, margin=run.config.margin)
+    loss = place_loss(values, sq, labels, margin=run.config.margin)
     positive = pairs.positive
-    pr = pr_sweep(-best.values.numpy(), positive, num_positives=int(positive.sum()), num_queries=len(pairs))
+    pr = pr_sweep(-values.numpy(), positive, num_positives=int(positive.sum()), num_queries=len(pairs))
     return {"val_loss": float(loss), "val_max_f1": None if pr is None else pr.max_f1}
 
 
@@ -448,9 +446,7 @@ def plot_curves(history: list[dict[str, Any]], path: Path) -> None:
     ax.plot([h["epoch"] for h in rows], [np.nan if h["val_max_f1"] is None else h["val_max_f1"] for h in rows], "o-")
     ax.set(xlabel="epoch", ylabel="max F1", title="stage 2: validation pairs", ylim=(0, 1.02))
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
+    save_figure(fig, path)
 
 
 # ---------------------------------------------------------------------- the run
@@ -465,8 +461,8 @@ def train(config: TrainConfig) -> Run:
     if config.val_cache:
         val = TrainData.from_cache(FeatureCache.load(config.val_cache))
     if len(data.queries) == 0:
-        raise ValueError(f"{', '.join(config.caches)}: no complete query sequence in the training part; drive "
-                         "longer (a sequence needs 15 m after its query frame)")
+        raise InvalidValueError(f"{', '.join(config.caches)}: no complete query sequence in the training part; drive "
+                                "longer (a sequence needs 15 m after its query frame)")
     seq, desc = seeded_models(config.seed)
     seq.straight_through_clamp = config.straight_through_clamp
     if config.init_sequence:

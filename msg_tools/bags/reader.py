@@ -27,6 +27,7 @@ from ..errors import BagError
 from ..frames import CameraImage, SensorFrame, Topics
 from ..image import depth_to_metres, image_to_array, image_to_rgb
 from ..pointcloud import pointcloud2_to_array
+from ..progress import progress_bar
 from ..transforms import odometry_to_pose
 from ..types import NS_PER_S, typestore
 from .cdr import header_stamp_ns
@@ -217,7 +218,7 @@ class FrameStream:
         remaining = [sum(1 for _ in self._slots_of(plan)) for plan in self._plans]
         parts: dict[int, dict[tuple[str, int], Any]] = {}
         next_frame = 0
-        bar = _progress(len(self._plans), self.progress)
+        bar = progress_bar(len(self._plans), desc="frames", unit="frame", enabled=self.progress)
         try:
             with open_bag(self.path) as reader:
                 connections = [c for c in reader.connections if c.topic in wanted]
@@ -237,13 +238,11 @@ class FrameStream:
                     while next_frame < len(self._plans) and remaining[next_frame] == 0:
                         yield self._assemble(next_frame, parts.pop(next_frame, {}))
                         next_frame += 1
-                        if bar is not None:
-                            bar.update(1)
+                        bar.update(1)
                     if next_frame == len(self._plans):
                         return
         finally:
-            if bar is not None:
-                bar.close()
+            bar.close()
         raise BagError(f"{self.path} changed while it was read: {len(self._plans) - next_frame} frames lost parts")
 
     @staticmethod
@@ -296,14 +295,6 @@ class FrameStream:
                 return CameraImage(stamp, frame_id, rgb=rgb, depth=depth, labels=labels)
             return CameraImage(stamp, frame_id, jpeg=compressed_bytes(msg), depth=depth, labels=labels)
         return CameraImage(stamp, frame_id, rgb=image_to_rgb(msg), depth=depth, labels=labels)
-
-
-def _progress(total: int, enabled: bool) -> Any:
-    if not enabled:
-        return None
-    from tqdm import tqdm
-
-    return tqdm(total=total, unit="frame", desc="frames")
 
 
 def read_frames(

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..errors import DatasetError
 from ..geometry import check_pose, invert_pose
+from .float32_bin import KITTI_COLUMNS, read_float32_rows
 
 LABEL_DTYPE = np.dtype("<u4")
 
@@ -110,10 +111,7 @@ def read_camera_poses(path: Path) -> np.ndarray:
 
 def read_scan(path: Path) -> np.ndarray:
     """velodyne/*.bin -> N x 4 float32 (x, y, z, reflectance)."""
-    raw = np.fromfile(path, dtype="<f4")
-    if raw.size % 4:
-        raise DatasetError(f"{path} holds {raw.size} float32 values, not a multiple of 4 (x, y, z, reflectance)")
-    return raw.reshape(-1, 4)
+    return read_float32_rows(path, columns=KITTI_COLUMNS)
 
 
 def read_labels(path: Path, points: int) -> np.ndarray:

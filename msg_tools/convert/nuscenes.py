@@ -32,6 +32,7 @@ from ..frames import NUSCENES_CAMERAS, NUSCENES_TOPICS, CameraModel, Topics
 from ..geometry import pose_from_parts
 from ..types import Stamp
 from .cli import add_output_options, print_summary, progress
+from .float32_bin import NUSCENES_COLUMNS, read_float32_rows
 from .nuscenes_tables import NuScenesTables, Record
 
 LIDAR = "LIDAR_TOP"
@@ -65,10 +66,7 @@ def _pose(record: Record) -> np.ndarray:
 
 def read_lidar(path: Path) -> np.ndarray:
     """``*.pcd.bin`` (float32 x, y, z, intensity, ring) -> structured cloud with ring as uint16."""
-    raw = np.fromfile(path, dtype="<f4")
-    if raw.size % 5:
-        raise DatasetError(f"{path} holds {raw.size} float32 values, not a multiple of 5 (x, y, z, intensity, ring)")
-    points = raw.reshape(-1, 5)
+    points = read_float32_rows(path, columns=NUSCENES_COLUMNS)
     ring = points[:, 4]
     if np.any(ring != np.round(ring)) or np.any(ring < 0) or np.any(ring > np.iinfo(np.uint16).max):
         raise DatasetError(f"{path} has ring values that are not whole numbers in [0, 65535]")

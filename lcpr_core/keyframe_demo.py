@@ -15,7 +15,7 @@ import torch
 
 from .describer import Describer, ModelConfig
 from .preprocess import NUSCENES_CAMERAS, range_image
-from .preprocess.files import find_nuscenes_keyframe
+from .preprocess.dataset_files import find_nuscenes_keyframe
 from .preprocess.range_image import rotate_z
 from .timing import median_seconds
 
@@ -124,7 +124,7 @@ def plot_inputs(cams: torch.Tensor, ranges: torch.Tensor, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .atomic import atomic_path
+    from .atomic import save_figure
     from .preprocess import IMAGENET_MEAN, IMAGENET_STD
 
     mean, std = torch.tensor(IMAGENET_MEAN).view(3, 1, 1), torch.tensor(IMAGENET_STD).view(3, 1, 1)
@@ -137,9 +137,7 @@ def plot_inputs(cams: torch.Tensor, ranges: torch.Tensor, path: Path) -> None:
     im = bottom.imshow(shown, cmap="turbo", aspect="auto", interpolation="nearest")
     bottom.set_title("range image (m), blank = no return")
     fig.colorbar(im, ax=bottom, fraction=0.02)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=90)
+    save_figure(fig, path, dpi=90)
     plt.close(fig)
 
 

@@ -8,28 +8,29 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputShapeError
+from msg_tools.convert.float32_bin import KITTI_COLUMNS, NUSCENES_COLUMNS, read_float32_rows
+from msg_tools.errors import DatasetError
+
+from ..errors import DatasetFileError, InputShapeError
 from .camera import NUSCENES_CAMERAS
 
 
-def read_float32_points(path: str | os.PathLike[str], *, columns: int) -> np.ndarray:
-    """A flat float32 file of N x ``columns`` values -> N x columns array."""
-    raw = np.fromfile(path, dtype=np.float32)
-    if raw.size % columns:
-        raise InputShapeError(
-            f"{os.fspath(path)!r} holds {raw.size} float32 values, not a multiple of {columns} columns"
-        )
-    return raw.reshape(-1, columns)
+def read_float32_points(path: str | os.PathLike[str], *, columns: tuple[str, ...]) -> np.ndarray:
+    """A flat float32 file -> N x len(columns) array (msg_tools' reader; its size error as InputShapeError)."""
+    try:
+        return read_float32_rows(path, columns=columns)
+    except DatasetError as err:
+        raise InputShapeError(str(err)) from err
 
 
 def read_nuscenes_lidar(path: str | os.PathLike[str]) -> np.ndarray:
     """nuScenes ``*.pcd.bin``: N x 5 (x, y, z, intensity, ring), LIDAR_TOP frame."""
-    return read_float32_points(path, columns=5)
+    return read_float32_points(path, columns=NUSCENES_COLUMNS)
 
 
 def read_kitti_velodyne(path: str | os.PathLike[str]) -> np.ndarray:
     """KITTI ``velodyne/*.bin``: N x 4 (x, y, z, reflectance), Velodyne frame (x forward)."""
-    return read_float32_points(path, columns=4)
+    return read_float32_points(path, columns=KITTI_COLUMNS)
 
 
 @dataclass(frozen=True)
@@ -53,9 +54,9 @@ def find_nuscenes_keyframe(
     for cam in cameras:
         matches = sorted(root.glob(f"*__{cam}__*.jpg"))
         if len(matches) != 1:
-            raise FileNotFoundError(f"expected one *__{cam}__*.jpg in {root}, found {len(matches)}")
+            raise DatasetFileError(f"expected one *__{cam}__*.jpg in {root}, found {len(matches)}")
         found.append(matches[0])
     lidar = sorted(root.glob("*__LIDAR_TOP__*.pcd.bin"))
     if len(lidar) != 1:
-        raise FileNotFoundError(f"expected one *__LIDAR_TOP__*.pcd.bin in {root}, found {len(lidar)}")
+        raise DatasetFileError(f"expected one *__LIDAR_TOP__*.pcd.bin in {root}, found {len(lidar)}")
     return KeyframeFiles(tuple(found), lidar[0])
