@@ -11,10 +11,8 @@ Distances are Euclidean (L2, not squared), computed by FAISS in float32.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import os
-import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -23,9 +21,9 @@ import faiss
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .atomic import atomic_path
 from .errors import LcprError, MapError, MapSchemaError
 from .growable import GrowableArray
+from .map_file import check_header_fields, read_map_file, write_map_file
 from .verification.clouds import CloudStore
 
 __all__ = ["MapConfig", "Match", "DescriptorMap", "INDEX_TYPES", "SCHEMA_VERSION"]
@@ -34,7 +32,7 @@ INDEX_TYPES: tuple[str, ...] = ("flat", "hnsw")
 SCHEMA_VERSION = 2  # 2: keyframe clouds (cloud_ids, cloud_counts, cloud_points); version 1 files still load
 _READABLE_VERSIONS = (1, 2)
 _FORMAT = "lcpr_core.descriptor_map"
-_NPZ_KEYS = ("header", "descriptors", "ids", "stamps", "poses", "source_codes")
+_NPZ_KEYS = ("descriptors", "ids", "stamps", "poses", "source_codes")
 _CLOUD_KEYS = ("cloud_ids", "cloud_counts", "cloud_points")
 # A filtered search over at most this many allowed rows is done exactly (brute force).
 _EXACT_FALLBACK_ROWS = 16384
@@ -359,8 +357,7 @@ class DescriptorMap:
             "sources": self._source_names,
             "clouds": len(self.clouds),
         }
-        arrays: dict[str, Any] = {  # Any: np.savez's keywords also name its own allow_pickle flag
-            "header": np.array(json.dumps(header)),
+        arrays = {
             "descriptors": self._xb(),
             "ids": self._ids.view(),
             "stamps": self._stamps.view(),
@@ -368,11 +365,7 @@ class DescriptorMap:
             "source_codes": self._source_codes.view(),
             **self.clouds.to_arrays(),
         }
-        try:
-            with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-                np.savez(fh, **arrays)  # file handle: numpy must not append ".npz"
-        except OSError as err:
-            raise MapError(f"cannot save descriptor map to {os.fspath(path)}: {err}") from err
+        write_map_file(path, header, arrays, kind="descriptor map")
 
     @classmethod
     def load(cls, path: str | os.PathLike[str], *, expect: MapConfig | None = None) -> DescriptorMap:
@@ -383,8 +376,12 @@ class DescriptorMap:
         the file says.
         """
         where = os.fspath(path)
-        data = _read_npz(where)
-        header = _parse_header(data["header"], where)
+        header, data = read_map_file(where, kind="map file", file_format=_FORMAT, versions=_READABLE_VERSIONS,
+                                     required=_NPZ_KEYS, optional_group=_CLOUD_KEYS)
+        check_header_fields(header, (("dim", int), ("model", str), ("index", str), ("count", int),
+                                     ("sources", list)), kind="map file", where=where)
+        if not all(isinstance(name, str) for name in header["sources"]):
+            raise MapError(f"map file {where} header field 'sources' holds non-strings; expected a list of str")
         file_dim, file_model = header["dim"], header["model"]
         if expect is not None and (expect.dim != file_dim or expect.model != file_model):
             raise MapSchemaError(
@@ -495,86 +492,6 @@ def _check_windows(exclude_after: float | ArrayLike | None, q: int) -> np.ndarra
         raise MapError("exclude_after is NaN; expected a stamp in seconds (inf allowed)")
     return arr
 
-
-#: A member's data may claim at most this many times the archive's own size (deflate peaks near 1032:1).
-_MAX_EXPANSION = 1100
-
-
-def _check_member_sizes(where: str) -> None:
-    """Refuse, before numpy allocates anything, an array whose .npy header claims more bytes than its
-    member holds, or a member claiming more than the archive could hold (a damaged or forged file)."""
-    archive = os.path.getsize(where)
-    with zipfile.ZipFile(where) as zf:
-        for info in zf.infolist():
-            if info.file_size > _MAX_EXPANSION * max(archive, 1):
-                raise MapError(f"map file {where}: member {info.filename} claims {info.file_size} bytes, "
-                               f"impossible in a {archive}-byte archive")
-            with zf.open(info) as fh:
-                version = np.lib.format.read_magic(fh)
-                reader = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
-                    np.lib.format.read_array_header_2_0
-                shape, _, dtype = reader(fh)
-                if dtype.hasobject:
-                    raise MapError(f"map file {where}: member {info.filename} holds Python objects (pickle); "
-                                   "refused")
-                claimed = int(np.prod(shape, dtype=object)) * dtype.itemsize
-                held = info.file_size - fh.tell()
-                if claimed > held:
-                    raise MapError(f"map file {where}: member {info.filename} claims shape {tuple(shape)} "
-                                   f"{dtype} ({claimed} bytes) but holds {held}")
-
-
-def _read_npz(where: str) -> dict[str, np.ndarray]:
-    try:
-        if os.path.exists(where):
-            _check_member_sizes(where)
-    except MapError:
-        raise
-    except Exception as err:  # noqa: BLE001 - BadZipFile, ValueError from a damaged .npy header, OSError
-        raise MapError(f"map file {where} cannot be read as a descriptor map (.npz): "
-                       f"{type(err).__name__}: {err}") from err
-    try:
-        npz = np.load(where, allow_pickle=False, mmap_mode=None)
-    except FileNotFoundError as err:
-        raise MapError(f"map file {where} does not exist") from err
-    except Exception as err:  # noqa: BLE001 - OSError, BadZipFile, ValueError (pickle), EOFError, ...
-        raise MapError(f"map file {where} cannot be read as a descriptor map (.npz): "
-                       f"{type(err).__name__}: {err}") from err
-    if not isinstance(npz, np.lib.npyio.NpzFile):
-        raise MapError(f"map file {where} is not an .npz archive (found a single .npy array)")
-    try:
-        with npz:
-            missing = [key for key in _NPZ_KEYS if key not in npz.files]
-            if missing:
-                raise MapError(f"map file {where} lacks {', '.join(missing)}; expected arrays {', '.join(_NPZ_KEYS)}")
-            present = [key for key in _CLOUD_KEYS if key in npz.files]
-            if present and len(present) != len(_CLOUD_KEYS):
-                raise MapError(f"map file {where} holds {', '.join(present)} but not all of {', '.join(_CLOUD_KEYS)}")
-            return {key: npz[key] for key in (*_NPZ_KEYS, *present)}
-    except MapError:
-        raise
-    except Exception as err:  # noqa: BLE001 - zipfile/numpy raise many kinds on damaged archives
-        raise MapError(f"map file {where} cannot be read as a descriptor map (.npz): "
-                       f"{type(err).__name__}: {err}") from err
-
-
-def _parse_header(raw: np.ndarray, where: str) -> dict[str, Any]:
-    try:
-        header = json.loads(str(raw.item()))
-    except (ValueError, TypeError) as err:
-        raise MapError(f"map file {where} has an unreadable header: {err}") from err
-    if not isinstance(header, dict) or header.get("format") != _FORMAT:
-        raise MapError(f"map file {where} is not a {_FORMAT} file")
-    version = header.get("schema_version")
-    if version not in _READABLE_VERSIONS:
-        raise MapSchemaError(f"map file {where} has schema version {version!r}; this code reads versions "
-                             f"{', '.join(map(str, _READABLE_VERSIONS))}")
-    for key, kind in (("dim", int), ("model", str), ("index", str), ("count", int), ("sources", list)):
-        if not isinstance(header.get(key), kind):
-            raise MapError(f"map file {where} header field {key!r} is {header.get(key)!r}; expected a {kind.__name__}")
-    if not all(isinstance(name, str) for name in header["sources"]):
-        raise MapError(f"map file {where} header field 'sources' holds non-strings; expected a list of str")
-    return header
 
 
 def _config_from_header(header: dict[str, Any], where: str) -> MapConfig:

@@ -60,6 +60,18 @@ def _forge_shape(path: Path, member: str, shape: tuple[int, ...]) -> None:
             zf.writestr(name, content)
 
 
+def test_a_vseq2pc_scan_database_with_a_forged_array_is_refused_the_same_way(tmp_path: Path) -> None:
+    from lcpr_core.vseq2pc.retrieval import ScanDatabase
+
+    path = tmp_path / "scans.npz"
+    db = ScanDatabase(weights_id="w")
+    db.add(np.zeros((2, 8, 288), np.float32), stamps=[0.0, 1.0])
+    db.save(path)
+    _forge_shape(path, "descriptors.npy", (10**12, 8, 288))
+    with pytest.raises(MapError, match=r"scan database .*scans\.npz.*claims shape \(1000000000000, 8, 288\)"):
+        ScanDatabase.load(path)
+
+
 def test_a_map_whose_arrays_claim_absurd_sizes_is_refused_before_allocating(tmp_path: Path) -> None:
     path = tmp_path / "forged.npz"
     a_map(10).save(path)

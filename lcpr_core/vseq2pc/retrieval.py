@@ -17,7 +17,6 @@ format, schema version and the descriptor weights that made the descriptors.
 """
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Sequence
@@ -29,9 +28,9 @@ import numpy as np
 import torch
 from numpy.typing import ArrayLike
 
-from ..atomic import atomic_path
 from ..errors import InputShapeError, InvalidValueError, MapError, MapSchemaError
 from ..growable import GrowableArray
+from ..map_file import check_header_fields, read_map_file, write_map_file
 from ..models import DescriptorModel
 from ..preprocess.structure import structure_feature
 from .net import DESCRIPTOR_DIM, SLICES, Vseq2pcNet
@@ -41,7 +40,7 @@ __all__ = ["DATABASE_SCHEMA_VERSION", "ScanDatabase", "ScanMatch", "SearchConfig
 
 DATABASE_SCHEMA_VERSION = 1
 _FORMAT = "lcpr_core.vseq2pc_map"
-_NPZ_KEYS = ("header", "descriptors", "ids", "stamps", "poses")
+_NPZ_KEYS = ("descriptors", "ids", "stamps", "poses")
 
 
 @dataclass(frozen=True)
@@ -308,22 +307,21 @@ class ScanDatabase:
         """Write the database to one .npz (no pickle), atomically: on failure the old file stays."""
         header = {"format": _FORMAT, "schema_version": DATABASE_SCHEMA_VERSION, "slices": SLICES,
                   "dim": DESCRIPTOR_DIM, "count": len(self), "weights_id": self.weights_id}
-        # Any: np.savez's keywords also name its own allow_pickle flag
-        arrays: dict[str, Any] = {"header": np.array(json.dumps(header)), "descriptors": self._view(),
-                                  "ids": self._ids.view(), "stamps": self._stamps.view(), "poses": self._poses.view()}
-        try:
-            with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-                np.savez(fh, **arrays)
-        except OSError as err:
-            raise MapError(f"cannot save the scan database to {os.fspath(path)}: {err}") from err
+        arrays = {"descriptors": self._view(), "ids": self._ids.view(), "stamps": self._stamps.view(),
+                  "poses": self._poses.view()}
+        write_map_file(path, header, arrays, kind="scan database")
 
     @classmethod
     def load(cls, path: str | os.PathLike[str], *, expect_weights_id: str | None = None) -> ScanDatabase:
         """Read a file written by :meth:`save`. With ``expect_weights_id``, the file's descriptors must
         come from those weights (else MapSchemaError)."""
         where = os.fspath(path)
-        data = _read_npz(where)
-        header = _parse_header(data["header"], where)
+        header, data = read_map_file(where, kind="scan database", file_format=_FORMAT,
+                                     versions=(DATABASE_SCHEMA_VERSION,), required=_NPZ_KEYS)
+        if header.get("slices") != SLICES or header.get("dim") != DESCRIPTOR_DIM:
+            raise MapSchemaError(f"scan database {where} holds {header.get('slices')} x {header.get('dim')} "
+                                 f"descriptors per scan; expected {SLICES} x {DESCRIPTOR_DIM}")
+        check_header_fields(header, (("count", int), ("weights_id", str)), kind="scan database", where=where)
         if expect_weights_id is not None and header["weights_id"] != expect_weights_id:
             raise MapSchemaError(f"scan database {where} was made with descriptor weights "
                                  f"{header['weights_id']!r}; these weights are {expect_weights_id!r}")
@@ -355,41 +353,6 @@ def _per_query(values: Any, q: int, what: str) -> np.ndarray | None:
     if arr.shape != (q,) or np.isnan(arr).any():
         raise InputShapeError(f"{what} of shape {arr.shape}; expected one number or ({q},), not NaN")
     return arr
-
-
-def _read_npz(where: str) -> dict[str, np.ndarray]:
-    try:
-        with np.load(where, allow_pickle=False) as npz:
-            missing = [k for k in _NPZ_KEYS if k not in npz.files]
-            if missing:
-                raise MapError(f"scan database {where} lacks {', '.join(missing)}; expected {', '.join(_NPZ_KEYS)}")
-            return {k: npz[k] for k in _NPZ_KEYS}
-    except FileNotFoundError as err:
-        raise MapError(f"scan database {where} does not exist") from err
-    except MapError:
-        raise
-    except Exception as err:  # noqa: BLE001 - zipfile/numpy raise many kinds on damaged files
-        raise MapError(f"scan database {where} cannot be read (.npz): {type(err).__name__}: {err}") from err
-
-
-def _parse_header(raw: np.ndarray, where: str) -> dict[str, Any]:
-    try:
-        header = json.loads(str(raw.item()))
-    except (ValueError, TypeError) as err:
-        raise MapError(f"scan database {where} has an unreadable header: {err}") from err
-    if not isinstance(header, dict) or header.get("format") != _FORMAT:
-        raise MapError(f"{where} is not a {_FORMAT} file")
-    if header.get("schema_version") != DATABASE_SCHEMA_VERSION:
-        raise MapSchemaError(f"scan database {where} has schema version {header.get('schema_version')!r}; this "
-                             f"code reads version {DATABASE_SCHEMA_VERSION}")
-    if header.get("slices") != SLICES or header.get("dim") != DESCRIPTOR_DIM:
-        raise MapSchemaError(f"scan database {where} holds {header.get('slices')} x {header.get('dim')} "
-                             f"descriptors per scan; expected {SLICES} x {DESCRIPTOR_DIM}")
-    for key, kind in (("count", int), ("weights_id", str)):
-        if not isinstance(header.get(key), kind):
-            raise MapError(f"scan database {where} header field {key!r} is {header.get(key)!r}; "
-                           f"expected {kind.__name__}")
-    return header
 
 
 @dataclass
