@@ -17,7 +17,17 @@ cameras, degraded (a camera missing) or lost; the node's drops, warnings and loo
 ``--node-env FASTDDS_BUILTIN_TRANSPORTS=UDPv4`` runs the node on UDP loopback only, so the
 publisher sends it its own copy of each sample instead of sharing its segment.
 
-Measured (AMD EPYC, 2 cores, rclpy 9.1.2 / Fast DDS from the Kilted wheels; one run each unless noted):
+Measured with ROS 2 Jazzy's wheels (rclpy 7.1.6, Fast DDS 2.14; Intel Xeon, 2 cores; one run each):
+
+    six 320x180 rgb8 + 30k points, 40 frames   taken  degraded  loops/20  late images counted
+    node with Fast DDS defaults                   40      29         9       104
+    node with FASTDDS_BUILTIN_TRANSPORTS=UDPv4    34      22         9        74   (6 "replaced while busy")
+    publisher with a 16 MiB segment (FASTRTPS_DEFAULT_PROFILES_FILE=<lcpr_ros.replay.FASTDDS_PROFILE>)
+                                                  40       0        20         0
+
+So on Jazzy the fix is the publisher's segment; UDPv4 on the node does not help there.
+
+Measured earlier (AMD EPYC, 2 cores, rclpy 9.1.2 / Fast DDS from the Kilted wheels; one run each unless noted):
 
     six 320x180 rgb8 + 30k points, 40 frames   taken  degraded  loops/20  late images counted
     node with Fast DDS defaults (two runs)       39-40   16-22     7-11     68 (second run)

@@ -48,8 +48,10 @@ NODE_NAME = "lcpr"
 BUSY = "frame: replaced while busy"
 LATE_IMAGE_HELP = ("{topic}: an image came after its frame had gone without it (lost in transport, then repaired). "
                    "The usual cause: a process that publishes images and clouds through Fast DDS's default 512 KiB "
-                   "shared-memory segment. Give that publisher a larger segment (README: Fast DDS), or run this node "
-                   "with FASTDDS_BUILTIN_TRANSPORTS=UDPv4 so that it is sent its own copy")
+                   "shared-memory segment. Give that publisher a larger segment with a Fast DDS profile "
+                   "(FASTRTPS_DEFAULT_PROFILES_FILE on Jazzy, FASTDDS_DEFAULT_PROFILES_FILE on Kilted; "
+                   "lcpr_ros.replay.FASTDDS_PROFILE is a template). With Kilted's Fast DDS 3, running this node "
+                   "with FASTDDS_BUILTIN_TRANSPORTS=UDPv4 also helps; with Jazzy's it did not")
 FAILED = "frame: processing failed"
 RELEASE_PERIOD = 0.05  # s between checks for clouds whose wait for images ran out
 SHUTDOWN_TIMEOUT = 60.0  # s the worker may take to finish its frames at shutdown
