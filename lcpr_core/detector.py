@@ -36,6 +36,7 @@ import numpy as np
 from .describer import Describer, ModelConfig
 from .descriptor_map import DescriptorMap, MapConfig, Match
 from .errors import InvalidValueError
+from .exclusion import matchable_prefix
 from .keyframes import keyframe_reason
 from .preprocess.camera import CameraInput
 from .verification import GeometricVerifier, PreparedCloud, Verification, VerifierConfig
@@ -294,7 +295,5 @@ class LoopDetector:
     def _excluded_count(self, stamp: float) -> int:
         """How many of this session's newest keyframes the exclusion rules hide from ``stamp``."""
         cfg = self.config.match
-        by_time = len(self._session_stamps) - int(
-            np.searchsorted(self._session_stamps, stamp - cfg.exclude_recent_s, side="right")
-        )
+        by_time = len(self._session_stamps) - matchable_prefix(self._session_stamps, stamp, cfg.exclude_recent_s)
         return min(len(self._session_stamps), max(by_time, int(cfg.exclude_recent_count)))

@@ -49,6 +49,7 @@ from msg_tools.ground_truth import revisit_pairs
 
 from .atomic import atomic_path, save_figure
 from .errors import InputShapeError, InvalidValueError
+from .exclusion import matchable
 from .loop_report import (
     LoopScore,
     PoseGraphProof,
@@ -59,6 +60,7 @@ from .loop_report import (
     score_loops,
 )
 from .metrics import PRResult, pr_sweep, precision_recall, recall_at_n
+from .positives import within_radius
 
 __all__ = [
     "GroundTruth", "LatencyStats", "MethodResult", "MethodRun", "OperatingPoint", "ProtocolResult",
@@ -145,7 +147,7 @@ def ground_truth(
     database = np.zeros(0, np.int64)
     queries = np.zeros(0, np.int64)
     if split_time is not None:
-        database = np.flatnonzero(valid & (t <= split_time - exclude_recent_s))
+        database = np.flatnonzero(valid & matchable(t, split_time, exclude_recent_s))
         later = np.flatnonzero(valid & (t >= split_time))
         if len(database) and len(later):
             queries = later[_any_within(p[later], p[database], radius)]
@@ -267,7 +269,7 @@ def ranked_protocol(
         ids, dist = np.full((len(ids), 1), -1), np.full((len(ids), 1), np.inf)
     cand = dp[np.maximum(ids, 0)] if len(dp) else np.full((*ids.shape, qp.shape[1]), np.nan)
     with np.errstate(invalid="ignore"):
-        hits = (ids >= 0) & (((cand - qp[:, None, :]) ** 2).sum(axis=2) <= radius * radius)
+        hits = (ids >= 0) & within_radius(cand - qp[:, None, :], radius)
     positive = np.asarray(has_match, bool) | hits.any(axis=1)
     num_positives = int(positive.sum())
     recall_at: dict[int, float] = {}
@@ -370,8 +372,7 @@ def _any_within(a: np.ndarray, b: np.ndarray, radius: float) -> np.ndarray:
     out = np.zeros(len(a), bool)
     step = max(1, _CHUNK // max(len(b) * a.shape[1], 1))
     for lo in range(0, len(a), step):
-        d2 = ((a[lo : lo + step, None, :] - b[None, :, :]) ** 2).sum(axis=2)
-        out[lo : lo + step] = (d2 <= radius * radius).any(axis=1)
+        out[lo : lo + step] = within_radius(a[lo : lo + step, None, :] - b[None, :, :], radius).any(axis=1)
     return out
 
 

@@ -48,6 +48,7 @@ from .posegraph import (
     plot_trajectories,
     relative_pose_error,
 )
+from .positives import within_radius
 
 __all__ = [
     "DEFAULT_LOOP_COVARIANCE", "LoopScore", "PoseGraphProof", "PublishedLoop", "covariance_lidar_to_body",
@@ -114,8 +115,7 @@ def loop_correct(loops: Sequence[PublishedLoop], positions: np.ndarray, radius: 
     for k, loop in enumerate(loops):
         q = _index(loop.query, len(pos), f"loops[{k}].query")
         m = _index(loop.match, len(pos), f"loops[{k}].match")
-        d2 = float(((pos[q] - pos[m]) ** 2).sum())
-        out[k] = math.isfinite(d2) and d2 <= radius * radius
+        out[k] = bool(within_radius(pos[q] - pos[m], radius))  # NaN positions: not a true loop
     return out
 
 

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import InputShapeError, InvalidValueError
+from .exclusion import matchable
 from .points import finite_xyz
 
 __all__ = [
@@ -224,7 +225,8 @@ class ScanContextMatcher:
         if k < 1:
             raise InvalidValueError(f"k={k}; it must be at least 1")
         n = self._n
-        allowed = np.arange(n) if stamp is None else np.flatnonzero(self._stamps[:n] <= stamp - cfg.exclude_recent_s)
+        allowed = np.arange(n) if stamp is None else np.flatnonzero(matchable(self._stamps[:n], stamp,
+                                                                                cfg.exclude_recent_s))
         if len(allowed) == 0:
             return []
         key = ring_key(q, kind=cfg.ring_key)

@@ -35,7 +35,7 @@ KITTI_LIDAR_T_CAM: tuple[float, ...] = (
 
 
 @dataclass(frozen=True)
-class ModelConfig:
+class Vseq2pcModelConfig:
     sequence: str = ""  # sequence-model weights (released pickled module or state dict)
     descriptor: str = ""  # descriptor-model weights ({'state_dict'} or state dict)
     seed: int = 0  # seeded random weights when both files are "" (testing only)
@@ -51,7 +51,7 @@ class ModelConfig:
 
 
 @dataclass(frozen=True)
-class MatchConfig:
+class Vseq2pcMatchConfig:
     top_k: int = 10  # candidates per query
     exclude_recent_s: float = 30.0  # scans stamped later than query stamp - this are not matched
     min_probability: float = 0.0  # candidates under this probability are not published
@@ -175,8 +175,8 @@ class NodeConfig:
     image_topic: str = KITTI_TOPICS.cameras[0]  # counted in diagnostics only; "" = not subscribed
     odom_topic: str = KITTI_TOPICS.odom
     input_qos: str = "best_available"  # lcpr_ros.qos
-    model: ModelConfig = field(default_factory=ModelConfig)
-    match: MatchConfig = field(default_factory=MatchConfig)
+    model: Vseq2pcModelConfig = field(default_factory=Vseq2pcModelConfig)
+    match: Vseq2pcMatchConfig = field(default_factory=Vseq2pcMatchConfig)
     sequence: SequenceParams = field(default_factory=SequenceParams)
     scan: FilterConfig = field(default_factory=FilterConfig)
     camera: FilterConfig = field(default_factory=FilterConfig)

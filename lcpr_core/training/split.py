@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InvalidValueError
+from ..positives import within_radius
 from .config import SplitConfig
 
 QUERY_SETS = ("train", "val", "test")
@@ -48,7 +49,7 @@ class Split:
         """Database sample indices that are negatives of sample ``query``."""
         db = self.database
         other = self.groups[db] != self.groups[query]
-        far = np.hypot(*(self.positions[db] - self.positions[query]).T) >= self.config.negative_radius
+        far = np.linalg.norm(self.positions[db] - self.positions[query], axis=1) >= self.config.negative_radius
         return db[other | far]
 
     def excluded(self, query: int) -> np.ndarray:
@@ -58,7 +59,7 @@ class Split:
     def _near(self, query: int, radius: float) -> np.ndarray:
         db = self.database
         same = self.groups[db] == self.groups[query]
-        return same & (np.hypot(*(self.positions[db] - self.positions[query]).T) <= radius)
+        return same & within_radius(self.positions[db] - self.positions[query], radius)
 
     def _not_recent(self, query: int) -> np.ndarray:
         db = self.database
@@ -100,10 +101,8 @@ def split_samples(positions: np.ndarray, stamps: np.ndarray, groups: np.ndarray,
 def _revisits(pos: np.ndarray, t: np.ndarray, config: SplitConfig) -> np.ndarray:
     """Time-ordered samples of one bag -> True where a sample revisits an older database sample."""
     is_query = np.zeros(len(t), bool)
-    r2 = config.positive_radius ** 2
     for i in range(len(t)):
         older = (t[i] - t[:i] > config.exclude_recent_s) & ~is_query[:i]
         if older.any():
-            d2 = ((pos[:i][older] - pos[i]) ** 2).sum(axis=1)
-            is_query[i] = bool((d2 <= r2).any())
+            is_query[i] = bool(within_radius(pos[:i][older] - pos[i], config.positive_radius).any())
     return is_query

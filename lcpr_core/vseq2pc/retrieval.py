@@ -29,6 +29,7 @@ import torch
 from numpy.typing import ArrayLike
 
 from ..errors import InputShapeError, InvalidValueError, MapError, MapSchemaError
+from ..exclusion import matchable, matchable_prefix
 from ..growable import GrowableArray
 from ..map_file import check_header_fields, read_map_file, write_map_file
 from ..models import DescriptorModel
@@ -207,11 +208,10 @@ class ScanDatabase:
             end = min(end, max(0, int(row) - config.exclude_recent_rows))
         if stamp is None or config.exclude_recent_s is None:
             return slice(0, end)
-        limit = float(stamp) - config.exclude_recent_s
         stamps = self._stamps.view()[:end]
         if self._stamps_sorted:
-            return slice(0, int(np.searchsorted(stamps, limit, side="right")))
-        return np.flatnonzero(stamps <= limit)
+            return slice(0, matchable_prefix(stamps, stamp, config.exclude_recent_s))
+        return np.flatnonzero(matchable(stamps, stamp, config.exclude_recent_s))
 
     def search(self, query: np.ndarray, head: DescriptorModel, *, config: SearchConfig = SearchConfig(),
                stamps: float | Sequence[float] | np.ndarray | None = None,
