@@ -12,7 +12,7 @@ setup(
     license="MIT",
     python_requires=">=3.10",
     packages=find_packages(
-        include=["lcpr_core*", "lcpr_ros*", "msg_tools*", "vseq2pc_ros*"]
+        include=["lcpr_core*", "lcpr_ros*", "msg_tools*", "vseq2pc_ros*", "citysim*"]
     ),
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
@@ -77,7 +77,7 @@ setup(
             "msg_tools_nuscenes2bag = msg_tools.convert.nuscenes:main",
             "msg_tools_kitti2bag = msg_tools.convert.kitti:main",
             "msg_tools_baginfo = msg_tools.convert.baginfo:main",
-            "msg_tools_synth = msg_tools.synth.cli:main",
+            "msg_tools_synth = citysim.cli:main",
         ],
     },
 )

@@ -13,7 +13,7 @@ mkdir -p "$OUT"
 
 # 1. drives: seeds 1 and 2 for training, seed 7 held out (300 keyframes each, 5 m apart, ~80 s each)
 for s in 1 2 7; do
-  [ -d "$OUT/synth_s$s.bag" ] || $PY -m msg_tools.synth.cli --seed $s --frames 300 --image-size 400x225 \
+  [ -d "$OUT/synth_s$s.bag" ] || $PY -m citysim.cli --seed $s --frames 300 --image-size 400x225 \
       --workers 2 --no-progress --out "$OUT/synth_s$s.bag"
 done
 
@@ -33,7 +33,7 @@ $PY -m lcpr_ros.evaluate "$OUT/synth_s7.bag" --weights "$OUT/run/init.pth" --thr
 
 # 5. operating threshold for the node (lcpr_core.pretrained.BUNDLED_MAX_DISTANCE): the max-F1
 #    threshold of the online protocol on a validation city of its own (seed 3)
-[ -d "$OUT/synth_s3.bag" ] || $PY -m msg_tools.synth.cli --seed 3 --frames 300 --image-size 400x225 \
+[ -d "$OUT/synth_s3.bag" ] || $PY -m citysim.cli --seed 3 --frames 300 --image-size 400x225 \
     --workers 2 --no-progress --out "$OUT/synth_s3.bag"
 $PY -m lcpr_ros.evaluate "$OUT/synth_s3.bag" --weights "$OUT/lcpr_synth_narrow.pth" --threads 2 --quiet \
     --out "$OUT/val_s3"

@@ -15,10 +15,10 @@ import sys
 
 import numpy as np
 
+from citysim import SynthConfig, SyntheticDrive
 from lcpr_core.loop_report import PublishedLoop, pose_graph_proof
 from lcpr_core.posegraph import DriftModel, PoseGraphConfig
 from msg_tools.ground_truth import revisit_pairs
-from msg_tools.synth import SynthConfig, SyntheticDrive
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -24,9 +24,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from citysim import SynthConfig, SyntheticDrive, write_bag  # noqa: E402
+from citysim.cli import image_size  # noqa: E402
 from msg_tools.frames import SensorFrame  # noqa: E402
-from msg_tools.synth import SynthConfig, SyntheticDrive, write_bag  # noqa: E402
-from msg_tools.synth.cli import image_size  # noqa: E402
 
 TARGET_S = 180.0
 

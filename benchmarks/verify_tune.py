@@ -49,7 +49,7 @@ class SyntheticLidar:
     """LiDAR clouds and poses of a synthetic drive (cameras rendered tiny: only the cloud is used)."""
 
     def __init__(self, rig: str, seed: int, frames: int) -> None:
-        from msg_tools.synth import SynthConfig, SyntheticDrive
+        from citysim import SynthConfig, SyntheticDrive
         self.drive = SyntheticDrive(SynthConfig(rig=rig, frames=frames, seed=seed, image_size=(64, 32)))
         base_T_lidar = self.drive.rig.lidar.base_T_lidar
         self.poses = np.stack([self.drive.pose(i) @ base_T_lidar for i in range(len(self.drive))])

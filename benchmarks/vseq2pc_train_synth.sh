@@ -20,7 +20,7 @@ for drive in "train_seed5 5 1000" "train_seed11 11 1000" "train_seed13 13 1000" 
              "train_seed19 19 1000" "train_seed29 29 1000" "val_seed23 23 1000" "heldout_seed7 7 800"; do
   set -- $drive
   [ -f "$OUT/$1.npz" ] && continue
-  $PY -m msg_tools.synth.cli --rig kitti --frames "$3" --seed "$2" --keyframe-spacing 1.5 --image-size 620x188 \
+  $PY -m citysim.cli --rig kitti --frames "$3" --seed "$2" --keyframe-spacing 1.5 --image-size 620x188 \
       --workers 1 --no-progress --out "$OUT/$1.bag"
   $PY -m lcpr_core.vseq2pc.dataset "$OUT/$1.bag" --out "$OUT/$1.npz"
   rm -rf "$OUT/$1.bag"   # several GB of raw images; the cache is all training needs

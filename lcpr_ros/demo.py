@@ -88,7 +88,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 def make_drive(args: argparse.Namespace) -> tuple[Path, Truth]:
     from tqdm import tqdm
 
-    from msg_tools.synth import SynthConfig, SyntheticDrive, write_bag
+    from citysim import SynthConfig, SyntheticDrive, write_bag
 
     width, height = (int(v) for v in args.image_size.lower().split("x"))
     drive = SyntheticDrive(SynthConfig(rig="nuscenes", frames=args.frames, seed=args.seed, image_size=(width, height)))

@@ -317,7 +317,7 @@ def test_the_evaluation_cli_does_not_import_rclpy() -> None:
 @pytest.mark.slow
 def test_lcpr_eval_on_a_synthetic_city_drive_finds_its_revisits(tmp_path: Path,
                                                                 capsys: pytest.CaptureFixture[str]) -> None:
-    synth = pytest.importorskip("msg_tools.synth")
+    synth = pytest.importorskip("citysim")
     drive = synth.SyntheticDrive(synth.SynthConfig(frames=48, seed=3, keyframe_spacing=20.0, image_size=(200, 112)))
     synth.write_bag(drive, tmp_path / "city")
     assert main_ok([str(tmp_path / "city"), "--out", str(tmp_path / "eval"), *SMALL])

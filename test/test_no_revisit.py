@@ -27,7 +27,7 @@ class AnyPlace:
 
 @pytest.mark.slow
 def test_a_drive_without_revisits_publishes_no_loop_although_every_candidate_is_verified(shared) -> None:
-    from msg_tools.synth import SynthConfig, SyntheticDrive
+    from citysim import SynthConfig, SyntheticDrive
 
     drive = SyntheticDrive(SynthConfig(rig="nuscenes", route="kitti00", frames=100, seed=21, image_size=(64, 32)))
     positions = np.asarray(drive.keyframes.xy, np.float64)

@@ -10,9 +10,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from lcpr_core import range_image
-from msg_tools import KITTI_TOPICS, NUSCENES_TOPICS, read_camera_models, read_frames
-from msg_tools.synth import (
+from citysim import (
     Label,
     LidarNoise,
     SynthConfig,
@@ -22,12 +20,12 @@ from msg_tools.synth import (
     make_rig,
     write_bag,
 )
-from msg_tools.synth import ground as g
-from msg_tools.synth.camera import lighting, render_camera
-from msg_tools.synth.labels import Mat
-from msg_tools.synth.lidar import render_lidar
-from msg_tools.synth.rigs import pose_matrix
-from msg_tools.synth.route import (
+from citysim import ground as g
+from citysim.camera import lighting, render_camera
+from citysim.labels import Mat
+from citysim.lidar import render_lidar
+from citysim.rigs import pose_matrix
+from citysim.route import (
     change_lanes,
     grid_path,
     load_kitti_path,
@@ -36,7 +34,9 @@ from msg_tools.synth.route import (
     revisit_stats,
     sample_keyframes,
 )
-from msg_tools.synth.world import GroundMap, ObjectsBuilder, ParkingSlots
+from citysim.world import GroundMap, ObjectsBuilder, ParkingSlots
+from lcpr_core import range_image
+from msg_tools import KITTI_TOPICS, NUSCENES_TOPICS, read_camera_models, read_frames
 
 EXACT: dict[str, Any] = dict(lidar_noise=LidarNoise.off(), pixel_noise=False, camera_drop=0.0)
 

@@ -6,9 +6,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from citysim import SynthConfig, SyntheticDrive, write_bag
+from citysim.lidar import LidarNoise
 from lcpr_core.vseq2pc.dataset import FeatureCache, build_cache, main
-from msg_tools.synth import SynthConfig, SyntheticDrive, write_bag
-from msg_tools.synth.lidar import LidarNoise
 
 
 @pytest.fixture(scope="module")

@@ -1,6 +1,6 @@
 """The vseq2pc node in this process (rclpy executor in a thread), driven over real DDS on loopback.
 
-Drive: a short KITTI-like synthetic drive (msg_tools.synth, 320 x 96 images, 2.5 m between
+Drive: a short KITTI-like synthetic drive (citysim, 320 x 96 images, 2.5 m between
 frames). The map pass publishes each frame's labelled 64-beam LiDAR cloud with odometry;
 100 s later the camera pass publishes the same poses' depth + label images and CameraInfo.
 The node runs the bundled trained weights (weights/vseq2pc_synth_*.pth), so each camera
@@ -32,6 +32,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 
+from citysim import SynthConfig, SyntheticDrive
 from lcpr_core.pretrained import default_vseq2pc_weights
 from lcpr_core.vseq2pc.sequence import sequence_table
 from lcpr_ros.errors import ConfigError, MapLoadError
@@ -40,7 +41,6 @@ from msg_tools.camera_info import model_to_camera_info
 from msg_tools.frames import CameraModel
 from msg_tools.image import array_to_image
 from msg_tools.pointcloud import array_to_pointcloud2
-from msg_tools.synth import SynthConfig, SyntheticDrive
 from msg_tools.transforms import pose_to_odometry
 from vseq2pc_ros import inputs
 from vseq2pc_ros.node import Vseq2pcNode

@@ -2,7 +2,7 @@
 
 ``__post_init__`` refuses a bad value with a ValueError naming it (turned into a
 ConfigError by :mod:`vseq2pc_ros.params`). Defaults fit the KITTI-like synthetic rig
-(msg_tools.synth.rigs.kitti_rig: base_link = velodyne, camera_left 0.27 m ahead,
+(citysim.rigs.kitti_rig: base_link = velodyne, camera_left 0.27 m ahead,
 0.06 m left, 0.08 m down, level, looking along +x).
 """
 from __future__ import annotations

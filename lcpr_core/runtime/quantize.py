@@ -53,7 +53,7 @@ METHODS = {"minmax": lambda m: m.MinMax, "percentile": lambda m: m.Percentile, "
 def calibration_inputs(describer: Describer, *, seed: int, frames: int, image_size: tuple[int, int] = (400, 225),
                        progress: bool = True) -> list[tuple[torch.Tensor, torch.Tensor]]:
     """``frames`` preprocessed model inputs spread along a synthetic nuScenes-rig drive of ``seed``."""
-    from msg_tools.synth import SynthConfig, SyntheticDrive
+    from citysim import SynthConfig, SyntheticDrive
 
     if seed in TEST_SEEDS:
         raise RuntimeSetupError(f"calibration seed {seed} is a held-out test city ({TEST_SEEDS}); choose another")

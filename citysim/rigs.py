@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..frames import KITTI_TOPICS, NUSCENES_CAMERAS, NUSCENES_TOPICS, CameraModel, Topics
+from msg_tools.frames import KITTI_TOPICS, NUSCENES_CAMERAS, NUSCENES_TOPICS, CameraModel, Topics
 
 RIGS = ("nuscenes", "kitti")
 

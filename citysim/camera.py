@@ -8,7 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 from PIL import Image
 
-from ..frames import CameraModel
+from msg_tools.frames import CameraModel
+
 from . import ground as g
 from .hashing import fractal_noise, hash_uniform, sample_noise
 from .materials import ground_look, object_look

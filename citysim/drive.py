@@ -12,7 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from ..frames import CameraImage, SensorFrame
+from msg_tools.frames import CameraImage, SensorFrame
+
 from .camera import encode_jpeg, lighting, render_camera
 from .citygen import CityConfig, grid_city, path_city
 from .hashing import hash_uniform, rng_for

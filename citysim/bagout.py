@@ -6,8 +6,9 @@ import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 
-from ..bags import BagWriter
-from ..frames import SensorFrame
+from msg_tools.bags import BagWriter
+from msg_tools.frames import SensorFrame
+
 from .drive import FrameTiming, SyntheticDrive
 
 

@@ -1,4 +1,4 @@
-"""``msg_tools_synth``: render a synthetic city drive into a rosbag2 (``python -m msg_tools.synth.cli``)."""
+"""``msg_tools_synth``: render a synthetic city drive into a rosbag2 (``python -m citysim.cli``)."""
 from __future__ import annotations
 
 import argparse
@@ -8,9 +8,10 @@ import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
-from ..bags.writer import STORAGES
-from ..errors import MsgToolsError
-from ..frames import SensorFrame
+from msg_tools.bags.writer import STORAGES
+from msg_tools.errors import MsgToolsError
+from msg_tools.frames import SensorFrame
+
 from .bagout import write_bag
 from .drive import ROUTES, SynthConfig, SyntheticDrive
 from .lidar import LidarNoise

@@ -1,6 +1,6 @@
 """A synthetic city with revisiting drives, rendered for a nuScenes-like or a KITTI-like rig.
 
-    from msg_tools.synth import SynthConfig, SyntheticDrive, write_bag
+    from citysim import SynthConfig, SyntheticDrive, write_bag
     drive = SyntheticDrive(SynthConfig(rig="nuscenes", frames=300, seed=0))
     for frame in drive.frames(workers=2):   # msg_tools.frames.SensorFrame, in order
         ...
