@@ -11,6 +11,7 @@ from pathlib import Path
 from msg_tools.bags.writer import STORAGES
 from msg_tools.errors import MsgToolsError
 from msg_tools.frames import SensorFrame
+from msg_tools.progress import progress_iter
 
 from .bagout import write_bag
 from .drive import ROUTES, SynthConfig, SyntheticDrive
@@ -84,10 +85,7 @@ def main(argv: Sequence[str] | None = None) -> int:
               f"route {drive.path.length:.0f} m, built in {drive.build_seconds:.1f} s", flush=True)
 
         def bar(frames: Iterator[SensorFrame]) -> Iterator[SensorFrame]:
-            if args.no_progress:
-                return frames
-            from tqdm import tqdm
-            return iter(tqdm(frames, total=len(drive), unit="frame"))
+            return progress_iter(frames, total=len(drive), unit="frame", enabled=not args.no_progress)
 
         report = write_bag(drive, args.out, workers=args.workers, storage=args.storage, overwrite=args.overwrite,
                            wrap=bar)

@@ -20,7 +20,7 @@ import numpy as np
 from .atomic import atomic_path
 from .errors import MapError, MapSchemaError
 
-#: A member may expand at most this much over the archive's size (np.savez stores, it does not compress).
+#: A member's data may claim at most this many times the archive's own size (deflate peaks near 1032:1).
 _MAX_EXPANSION = 1100
 
 

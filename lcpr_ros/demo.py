@@ -39,6 +39,7 @@ from lcpr_core.posegraph import DriftModel
 from lcpr_core.pretrained import BUNDLED_MAX_DISTANCE, default_weights
 from msg_tools.frames import NUSCENES_TOPICS
 from msg_tools.ground_truth import revisit_pairs
+from msg_tools.progress import progress_iter
 
 RADIUS = 9.0  # m: a loop is correct when the matched keyframe is this close (the paper's threshold)
 MIN_GAP = 30.0  # s: the node excludes younger keyframes, and so does the ground truth
@@ -86,8 +87,6 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 
 def make_drive(args: argparse.Namespace) -> tuple[Path, Truth]:
-    from tqdm import tqdm
-
     from citysim import SynthConfig, SyntheticDrive, write_bag
 
     width, height = (int(v) for v in args.image_size.lower().split("x"))
@@ -103,7 +102,7 @@ def make_drive(args: argparse.Namespace) -> tuple[Path, Truth]:
     else:
         print(f"[1/4] rendering a {len(stamps)}-keyframe drive of the synthetic city into {bag}")
         write_bag(drive, bag, workers=2,
-                  wrap=lambda frames: tqdm(frames, total=len(stamps), desc="rendering", unit="frame"))
+                  wrap=partial(progress_iter, total=len(stamps), desc="rendering", unit="frame"))
     return bag, Truth(stamps, positions, has, poses, np.asarray(drive.rig.lidar.base_T_lidar, np.float64))
 
 

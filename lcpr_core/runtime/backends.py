@@ -23,6 +23,11 @@ class Backend(Protocol):
         """B x N x 3 x H x W images, B x 1 x h x w ranges -> B x 256 float32 descriptors."""
 
 
+def graph_feeds(images: torch.Tensor, ranges: torch.Tensor) -> dict[str, np.ndarray]:
+    """The exported graph's inputs (see .onnx_cache: ``images``, ``ranges``) as float32 arrays."""
+    return {"images": images.detach().cpu().float().numpy(), "ranges": ranges.detach().cpu().float().numpy()}
+
+
 class TorchBackend:
     """The torch model, in fp32 or under bf16 autocast."""
 
@@ -59,8 +64,7 @@ class OrtBackend:
         self.path, self.name, self.runtime = Path(path), name, "onnxruntime"
 
     def __call__(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:
-        feeds = {"images": images.detach().cpu().float().numpy(), "ranges": ranges.detach().cpu().float().numpy()}
-        return np.asarray(self.session.run(["descriptor"], feeds)[0], dtype=np.float32)
+        return np.asarray(self.session.run(["descriptor"], graph_feeds(images, ranges))[0], dtype=np.float32)
 
 
 class OpenVinoBackend:
@@ -91,5 +95,5 @@ class OpenVinoBackend:
         self.path, self.name, self.runtime = Path(path), name, "openvino"
 
     def __call__(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:
-        feeds = {"images": images.detach().cpu().float().numpy(), "ranges": ranges.detach().cpu().float().numpy()}
-        return np.array(self.request.infer(feeds)[self.output], dtype=np.float32)  # a copy: the request reuses it
+        # a copy: the request reuses its output buffer
+        return np.array(self.request.infer(graph_feeds(images, ranges))[self.output], dtype=np.float32)

@@ -30,6 +30,8 @@ from .backends import Backend, OpenVinoBackend, OrtBackend, TorchBackend
 from .onnx_cache import exported_graph, graph_key, onnx_path
 
 if TYPE_CHECKING:
+    from pathlib import Path
+
     from ..describer import ModelConfig
     from ..models import LCPR
 
@@ -38,7 +40,6 @@ log = logging.getLogger(__name__)
 EXACT_COSINE = 0.99999  # what "exact" means for auto and for an exported graph
 INT8_COSINE = 0.99  # an int8 graph further than this from fp32 on the probe is refused as broken
 AUTO_CANDIDATES = ("fp32", "bf16", "onnx")
-GRAPH_RUNTIMES = ("onnxruntime", "openvino")  # what can run an exported graph
 _chosen: dict[tuple[str, str, int], str] = {}  # (graph key, device, threads) -> what auto chose in this process
 
 
@@ -81,10 +82,7 @@ def _build(name: str, config: ModelConfig, model: LCPR) -> Backend:
         raise RuntimeSetupError(f"model.precision={name!r} runs on the CPU only; with model.device="
                                 f"{config.device!r} accepted: auto, fp32, bf16")
     if name == "onnx":
-        path = exported_graph(config, model)
-        if config.runtime == "openvino":
-            return OpenVinoBackend(path, threads=config.threads, name="onnx")
-        return OrtBackend(path, threads=config.threads, name="onnx")
+        return _graph_backend(exported_graph(config, model), config, name)
     if name == "int8":
         path = onnx_path(config, "int8")
         if not path.is_file():
@@ -92,10 +90,15 @@ def _build(name: str, config: ModelConfig, model: LCPR) -> Backend:
             raise RuntimeSetupError(f"model.precision='int8' needs the int8 graph of these weights at {str(path)!r}; "
                                     f"make it once with: lcpr_quantize{weights} (accepted without it: auto, fp32, "
                                     "bf16, onnx)")
-        if config.runtime == "openvino":
-            return OpenVinoBackend(path, threads=config.threads, name="int8")
-        return OrtBackend(path, threads=config.threads, name="int8")
+        return _graph_backend(path, config, name)
     raise RuntimeSetupError(f"model.precision={name!r}; accepted: auto, fp32, bf16, onnx, int8")
+
+
+def _graph_backend(path: Path, config: ModelConfig, name: str) -> Backend:
+    """An exported graph in the runtime ``config.runtime`` names (``auto`` here: ONNX Runtime)."""
+    if config.runtime == "openvino":
+        return OpenVinoBackend(path, threads=config.threads, name=name)
+    return OrtBackend(path, threads=config.threads, name=name)
 
 
 def choose_backend(config: ModelConfig, model: LCPR, *, repeats: int = 3) -> Choice:
@@ -146,21 +149,23 @@ def choose_backend(config: ModelConfig, model: LCPR, *, repeats: int = 3) -> Cho
 
 def _fastest_int8(config: ModelConfig, model: LCPR, images: torch.Tensor, ranges: torch.Tensor, *,
                   repeats: int) -> Backend:
-    """The int8 graph in whichever of ONNX Runtime and OpenVINO runs it faster here (measured, logged)."""
-    runtimes: dict[str, Backend] = {}
+    """The int8 graph in whichever of ONNX Runtime and OpenVINO runs it faster here (measured, logged).
+
+    ONNX Runtime comes with the package: its failure (or a missing graph) is raised. OpenVINO may be
+    absent or refuse a graph; then ONNX Runtime runs it without being timed.
+    """
+    candidates: dict[str, Backend] = {"onnxruntime": _build("int8", dataclasses.replace(config, runtime="onnxruntime"),
+                                                            model)}
+    try:
+        candidates["openvino"] = _build("int8", dataclasses.replace(config, runtime="openvino"), model)
+    except RuntimeSetupError as err:
+        log.info("LCPR: int8 in openvino not measured: %s", err)
+        return candidates["onnxruntime"]
     ms: dict[str, float] = {}
-    for runtime in GRAPH_RUNTIMES:
-        try:
-            backend = _build("int8", dataclasses.replace(config, runtime=runtime), model)
-            backend(images, ranges)  # the first pass compiles and allocates: not timed
-            ms[runtime] = 1000 * median_seconds(partial(backend, images, ranges), repeats=repeats, warmup=0)
-        except RuntimeSetupError as err:
-            if runtime == "onnxruntime" or "needs the int8 graph" in str(err):
-                raise  # ONNX Runtime is installed with the package; a missing graph is missing for both
-            log.info("LCPR: int8 in %s not measured: %s", runtime, err)
-            continue
-        runtimes[runtime] = backend
+    for runtime, backend in candidates.items():
+        backend(images, ranges)  # the first pass compiles and allocates: not timed
+        ms[runtime] = 1000 * median_seconds(partial(backend, images, ranges), repeats=repeats, warmup=0)
     best = min(ms, key=ms.__getitem__)
     log.info("LCPR: int8 runs in %s on %s (%d threads): %s", best, cpu_model(), torch.get_num_threads(),
              ", ".join(f"{r} {v:.1f} ms" for r, v in ms.items()))
-    return runtimes[best]
+    return candidates[best]

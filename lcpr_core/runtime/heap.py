@@ -67,4 +67,3 @@ def _mallopt(threshold: int) -> str:
     if mallopt(_M_MMAP_THRESHOLD, int(threshold)) != 1:
         return f"refused by mallopt ({threshold} bytes)"
     return f"fixed at {threshold} bytes"
-

@@ -27,7 +27,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import onnx
 import torch
-from tqdm import tqdm
+
+from msg_tools.progress import progress_iter
 
 from ..errors import RuntimeSetupError
 from .choose import cosine
@@ -61,7 +62,7 @@ def calibration_inputs(describer: Describer, *, seed: int, frames: int, image_si
                                        image_size=image_size, camera_drop=0.0))
     picks = np.linspace(0, len(drive) - 1, frames).round().astype(int)
     out = []
-    for i in tqdm(picks, desc="calibration frames", unit="frame", disable=not progress):
+    for i in progress_iter(picks, total=len(picks), desc="calibration frames", unit="frame", enabled=progress):
         frame = drive.frame(int(i))
         images = [None if c is None else (c.rgb if c.rgb is not None else c.jpeg) for c in frame.cameras]
         points = np.stack([frame.cloud[k] for k in ("x", "y", "z")], axis=1).astype(np.float32)

@@ -1,15 +1,12 @@
-"""Shared command-line pieces of the converters: common options, progress bars, the final summary."""
+"""Shared command-line pieces of the converters: common options and the final summary."""
 from __future__ import annotations
 
 import argparse
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable
 from pathlib import Path
-from typing import TypeVar
 
 from ..bags import bag_summary
 from ..bags.writer import STORAGES
-
-T = TypeVar("T")
 
 
 def add_output_options(parser: argparse.ArgumentParser) -> None:
@@ -17,16 +14,6 @@ def add_output_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--storage", choices=sorted(STORAGES), default="sqlite3", help="rosbag2 storage plugin")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing bag at --out")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-
-
-def progress(items: Iterable[T], *, total: int | None, enabled: bool, unit: str) -> Iterator[T]:
-    """``items`` with a tqdm bar when enabled."""
-    if not enabled:
-        yield from items
-        return
-    from tqdm import tqdm
-
-    yield from tqdm(items, total=total, unit=unit)
 
 
 def print_summary(out: Path, lines: Iterable[str]) -> None:

@@ -34,8 +34,9 @@ from ..compressed import decode_image_bytes
 from ..errors import DatasetError, MsgToolsError
 from ..frames import KITTI_TOPICS, CameraModel, Topics
 from ..geometry import invert_pose
+from ..progress import progress_iter
 from ..types import Stamp, sec_to_stamp
-from .cli import add_output_options, print_summary, progress
+from .cli import add_output_options, print_summary
 from .kitti_files import KittiSequence, read_labels, read_scan
 
 CAMERA_FRAME = "camera_left"
@@ -128,7 +129,7 @@ def convert_kitti(
     report = KittiReport(with_pose=velo_poses is not None, with_labels=seq.has_labels, with_depth=depth)
     model: CameraModel | None = None
     with BagWriter(out, storage=storage, overwrite=overwrite) as writer:  # type: ignore[arg-type]
-        for i in progress(range(count), total=count, enabled=show_progress, unit="scan"):
+        for i in progress_iter(range(count), total=count, enabled=show_progress, unit="scan"):
             stem = seq.stems[i]
             stamp = Stamp.from_ns(start_ns + seq.times_ns[i])
             rgb = _rgb(seq.root / "image_2" / f"{stem}.png")

@@ -30,8 +30,9 @@ from ..compressed import compressed_jpeg_bytes
 from ..errors import DatasetError, MsgToolsError
 from ..frames import NUSCENES_CAMERAS, NUSCENES_TOPICS, CameraModel, Topics
 from ..geometry import pose_from_parts
+from ..progress import progress_iter
 from ..types import Stamp
-from .cli import add_output_options, print_summary, progress
+from .cli import add_output_options, print_summary
 from .float32_bin import NUSCENES_COLUMNS, read_float32_rows
 from .nuscenes_tables import NuScenesTables, Record
 
@@ -171,7 +172,7 @@ def convert_nuscenes(
     work = [(sample, i == 0) for scene in chosen for i, sample in enumerate(tables.scene_samples(scene))]
     with BagWriter(out, storage=storage, overwrite=overwrite) as writer:  # type: ignore[arg-type]
         scene_writer = _SceneWriter(tables, writer, NUSCENES_TOPICS, report)
-        for sample, first in progress(work, total=len(work), enabled=show_progress, unit="sample"):
+        for sample, first in progress_iter(work, total=len(work), enabled=show_progress, unit="sample"):
             scene_writer.write_sample(sample, first)
     return report
 
