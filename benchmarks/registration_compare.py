@@ -31,6 +31,7 @@ from verify_tune import SyntheticLidar  # noqa: E402
 from lcpr_core.verification import GeometricVerifier  # noqa: E402
 from msg_tools.convert.scan_folder import ScanFolder  # noqa: E402
 from msg_tools.ground_truth import revisit_pairs  # noqa: E402
+from msg_tools.shared_data import shared_path  # noqa: E402
 
 OK_M, OK_DEG = 0.3, 2.0
 
@@ -94,7 +95,7 @@ def compare(name: str, seq, truth_poses: np.ndarray, pairs: np.ndarray, verifier
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared/data/livox_hku")
+    p.add_argument("--data", type=Path, default=shared_path("data", "livox_hku"))
     p.add_argument("--pairs", type=int, default=60, help="pairs per data set (evenly spaced)")
     p.add_argument("--out", type=Path, default=Path("out/registration_compare"))
     args = p.parse_args(argv)

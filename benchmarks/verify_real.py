@@ -44,6 +44,7 @@ from lcpr_core.timing import cpu_model
 from lcpr_core.verification import GeometricVerifier, PreparedCloud, VerifierConfig
 from msg_tools.convert.scan_folder import ScanFolder
 from msg_tools.ground_truth import revisit_pairs
+from msg_tools.shared_data import shared_path
 
 SETS = ("walk_loop", "campus")
 TRUE_RADIUS, TRUE_GAP_S, TRUE_ROT_DEG = 3.0, 30.0, 30.0
@@ -164,7 +165,7 @@ def summarise(name: str, r: dict[str, np.ndarray], *, true: bool) -> dict[str, f
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared/data/livox_hku")
+    p.add_argument("--data", type=Path, default=shared_path("data", "livox_hku"))
     p.add_argument("--far", type=int, default=3000, help="random far pairs from campus")
     p.add_argument("--hard", type=int, default=3, help="hardest far pairs per campus keyframe (Scan Context)")
     p.add_argument("--seed", type=int, default=0)

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import math
 import multiprocessing
-import os
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
@@ -13,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from msg_tools.frames import CameraImage, SensorFrame
+from msg_tools.shared_data import shared_path
 
 from .camera import encode_jpeg, lighting, render_camera
 from .citygen import CityConfig, grid_city, path_city
@@ -38,9 +38,7 @@ ROUTES = ("grid", "kitti00")
 
 def default_kitti_poses() -> FsPath:
     """../shared/data/kitti00/poses.txt beside the checkout (or under $LCPR_SHARED_DIR)."""
-    shared = os.environ.get("LCPR_SHARED_DIR")
-    root = FsPath(shared) if shared else FsPath(__file__).resolve().parents[3] / "shared"
-    return root / "data" / "kitti00" / "poses.txt"
+    return shared_path("data", "kitti00", "poses.txt")
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from msg_tools.shared_data import shared_path
+
 from .describer import Describer, ModelConfig
 from .preprocess import NUSCENES_CAMERAS, range_image
 from .preprocess.dataset_files import find_nuscenes_keyframe
@@ -23,12 +25,8 @@ log = logging.getLogger("lcpr_demo")
 
 
 def default_data_dir() -> Path:
-    """../shared/data/nuscenes_sample beside the checkout (or beside the working directory)."""
-    for base in (Path(__file__).resolve().parents[2], Path.cwd().parent, Path.cwd()):
-        candidate = base / "shared" / "data" / "nuscenes_sample"
-        if candidate.is_dir():
-            return candidate
-    return Path("../shared/data/nuscenes_sample")
+    """../shared/data/nuscenes_sample (see msg_tools.shared_data for where ../shared is looked for)."""
+    return shared_path("data", "nuscenes_sample")
 
 
 def cosine(a: np.ndarray, b: np.ndarray) -> float:

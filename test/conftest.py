@@ -7,6 +7,8 @@ from pathlib import Path
 
 import pytest
 
+from msg_tools.shared_data import shared_dir
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -16,16 +18,9 @@ def _graph_cache(tmp_path_factory: pytest.TempPathFactory) -> None:
     os.environ["XDG_CACHE_HOME"] = str(tmp_path_factory.mktemp("xdg_cache"))
 
 
-def shared_dir() -> Path | None:
-    for candidate in (os.environ.get("LCPR_SHARED_DIR"), REPO.parent / "shared", REPO / "shared"):
-        if candidate and (Path(candidate) / "reference").is_dir():
-            return Path(candidate)
-    return None
-
-
 @pytest.fixture(scope="session")
 def shared() -> Path:
-    found = shared_dir()
+    found = shared_dir(marker="reference")
     if found is None:
         message = "../shared (reference vectors and real frames) not found beside the checkout; set LCPR_SHARED_DIR"
         if os.environ.get("CI"):
