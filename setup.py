@@ -12,7 +12,7 @@ setup(
     license="MIT",
     python_requires=">=3.10",
     packages=find_packages(
-        include=["lcpr_core*", "lcpr_ros*", "msg_tools*", "vseq2pc_ros*", "citysim*"]
+        include=["lcpr_core*", "lcpr_ros*", "msg_tools*", "ros_common*", "vseq2pc_ros*", "citysim*"]
     ),
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),

@@ -52,7 +52,7 @@ import rclpy  # noqa: E402
 from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 
-from lcpr_ros.harness import FramePublisher, OutputListener, interrupt, synthetic_place, wait_until  # noqa: E402
+from ros_common.harness import FramePublisher, OutputListener, interrupt, synthetic_place, wait_until  # noqa: E402
 
 FRAME_DT = 0.5  # s of header time between frames (2 Hz)
 T0 = 1_700_000_000.0

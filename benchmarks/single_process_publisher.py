@@ -54,7 +54,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 
-from lcpr_ros.harness import (  # noqa: E402
+from ros_common.harness import (  # noqa: E402
     FramePublisher,
     OutputListener,
     driver_node,

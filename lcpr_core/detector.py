@@ -37,7 +37,7 @@ from .describer import Describer, ModelConfig
 from .descriptor_map import DescriptorMap, MapConfig, Match
 from .errors import InvalidValueError
 from .exclusion import matchable_prefix
-from .keyframes import keyframe_reason
+from .keyframes import KeyframeConfig, keyframe_reason
 from .preprocess.camera import CameraInput
 from .verification import GeometricVerifier, PreparedCloud, Verification, VerifierConfig
 
@@ -49,15 +49,6 @@ def _non_negative(obj: object, *names: str) -> None:
         value = getattr(obj, name)
         if not value >= 0:
             raise InvalidValueError(f"{type(obj).__name__}.{name}={value!r}; it must be >= 0")
-
-
-@dataclass(frozen=True)
-class KeyframeConfig:
-    min_interval: float = 0.5  # s between keyframes (header stamps)
-    min_distance: float = 0.0  # m travelled between keyframes when poses are known; 0 = off
-
-    def __post_init__(self) -> None:
-        _non_negative(self, "min_interval", "min_distance")
 
 
 @dataclass(frozen=True)

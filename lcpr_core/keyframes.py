@@ -6,9 +6,25 @@ metres (3-D) away from it. The first frame, or the first after a reset, always i
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
+from .errors import InvalidValueError
+
 KEYFRAME, TOO_SOON, NOT_MOVED = "keyframe", "too soon", "not moved"
+
+
+@dataclass(frozen=True)
+class KeyframeConfig:
+    min_interval: float = 0.5  # s between keyframes (header stamps)
+    min_distance: float = 0.0  # m travelled between keyframes when poses are known; 0 = off
+
+    def __post_init__(self) -> None:
+        for name in ("min_interval", "min_distance"):
+            value = getattr(self, name)
+            if not value >= 0:
+                raise InvalidValueError(f"KeyframeConfig.{name}={value!r}; it must be >= 0")
 
 
 def keyframe_reason(stamp: float, position: np.ndarray | None, *, last_stamp: float | None,
@@ -33,12 +49,11 @@ class KeyframeGate:
         self.last_stamp: float | None = None
         self.last_position: np.ndarray | None = None
 
-    def keep(self, stamp: float, pose: np.ndarray | None, *, min_interval: float, min_distance: float) -> bool:
-        """Decide on a frame (``pose``: 4 x 4 or None); a kept frame becomes the last keyframe."""
+    def decide(self, stamp: float, pose: np.ndarray | None, config: KeyframeConfig) -> str:
+        """``KEYFRAME`` or why not, for a frame (``pose``: 4 x 4 or None); a keyframe becomes the last one."""
         position = None if pose is None else np.asarray(pose, np.float64)[:3, 3].copy()
         reason = keyframe_reason(stamp, position, last_stamp=self.last_stamp, last_position=self.last_position,
-                                 min_interval=min_interval, min_distance=min_distance)
-        if reason != KEYFRAME:
-            return False
-        self.last_stamp, self.last_position = stamp, position
-        return True
+                                 min_interval=config.min_interval, min_distance=config.min_distance)
+        if reason == KEYFRAME:
+            self.last_stamp, self.last_position = stamp, position
+        return reason

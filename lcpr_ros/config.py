@@ -6,31 +6,13 @@ Every ``__post_init__`` refuses a bad value with a ValueError naming it.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 from lcpr_core.detector import DetectorConfig
 from msg_tools.frames import NUSCENES_TOPICS
-
-#: ``input_qos`` values (profiles: lcpr_ros.qos). best_available (rclpy >= Iron) matches each
-#: publisher: reliable with reliable publishers such as ``ros2 bag play`` (a replay loses
-#: nothing), best effort with drivers that publish best effort.
-INPUT_QOS: tuple[str, ...] = ("best_available", "sensor_data", "reliable")
+from ros_common.config import INPUT_QOS, DiagnosticsConfig, MapFileConfig, require, require_finite_non_negative
 
 CAMERA_TYPES = ("auto", "compressed", "raw")
-
-
-def require(ok: bool, message: str) -> None:
-    """Raise ValueError(message) unless ``ok``: the configs' validation, shared with vseq2pc_ros."""
-    if not ok:
-        raise ValueError(message)
-
-
-def require_finite_non_negative(obj: object, *names: str) -> None:
-    for name in names:
-        value = getattr(obj, name)
-        require(isinstance(value, (int, float)) and math.isfinite(value) and value >= 0,
-               f"{name}={value!r}; it must be a finite number >= 0")
 
 
 @dataclass(frozen=True)
@@ -52,28 +34,12 @@ class SyncConfig:
 
 
 @dataclass(frozen=True)
-class MapFileConfig:
-    path: str = ""  # map file (.npz); "" = in memory only
-    save_on_shutdown: bool = True
-
-
-@dataclass(frozen=True)
-class DiagnosticsConfig:
-    period: float = 1.0  # s between /diagnostics messages (wall time)
-    window: int = 200  # latest frames in the latency percentiles
-
-    def __post_init__(self) -> None:
-        require(math.isfinite(self.period) and self.period > 0, f"diagnostics.period={self.period}; it must be > 0")
-        require(self.window >= 1, f"diagnostics.window={self.window}; it must be >= 1")
-
-
-@dataclass(frozen=True)
 class NodeConfig:
     camera_topics: tuple[str, ...] = NUSCENES_TOPICS.cameras  # nuScenes camera order
     camera_type: str = "auto"  # auto (".../compressed" -> CompressedImage) | compressed | raw
     lidar_topic: str = NUSCENES_TOPICS.lidar
     odom_topic: str = ""  # nav_msgs/Odometry; "" = no poses (no markers, no distance keyframing)
-    input_qos: str = "best_available"  # best_available | sensor_data (best effort) | reliable (lcpr_ros.qos)
+    input_qos: str = "best_available"  # best_available | sensor_data (best effort) | reliable (ros_common.qos)
     sync: SyncConfig = field(default_factory=SyncConfig)
     map: MapFileConfig = field(default_factory=MapFileConfig)
     diagnostics: DiagnosticsConfig = field(default_factory=DiagnosticsConfig)

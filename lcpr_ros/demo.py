@@ -131,7 +131,8 @@ def run(args: argparse.Namespace) -> int:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
 
-    from .harness import OutputListener
+    from ros_common.harness import OutputListener
+
     from .replay import replay, shared_memory_profile
 
     args.out.mkdir(parents=True, exist_ok=True)

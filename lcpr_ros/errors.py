@@ -1,23 +1,8 @@
-"""Exceptions of lcpr_ros; every message says what is wrong and what is accepted."""
+"""lcpr_ros's exceptions are the shared ROS layer's (:mod:`ros_common.errors`), importable from here too."""
 from __future__ import annotations
 
+from ros_common.errors import ConfigError, InputRejected, MapLoadError, NodeError
 
-class LcprRosError(Exception):
-    """Base class of every error raised by lcpr_ros."""
+LcprRosError = NodeError  # the base class's name before the ROS layer was shared
 
-
-class ConfigError(LcprRosError, ValueError):
-    """A parameter value (or a combination of them) is refused; the message gives the reason."""
-
-
-class MapLoadError(LcprRosError):
-    """The map file named by ``map.path`` exists but cannot be used; it is left untouched."""
-
-
-class InputRejected(LcprRosError, ValueError):
-    """A message cannot be used. ``reason`` is a short, stable cause (counted and warned once)."""
-
-    def __init__(self, reason: str, detail: str) -> None:
-        super().__init__(f"{reason}: {detail}")
-        self.reason = reason
-        self.detail = detail
+__all__ = ["ConfigError", "InputRejected", "LcprRosError", "MapLoadError", "NodeError"]

@@ -14,8 +14,7 @@ from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
 from lcpr_core.detector import Result
-
-from .stamps import NS_PER_S
+from ros_common.stamps import NS_PER_S
 
 NAMESPACE = "lcpr_loops"
 LINE_WIDTH = 0.3  # m

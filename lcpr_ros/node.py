@@ -26,23 +26,24 @@ from visualization_msgs.msg import MarkerArray
 
 from lcpr_core.detector import DetectorConfig, Frame, LoopDetector
 from lcpr_core.preprocess.camera import CameraInput
+from ros_common.diagnostics import DiagnosticsBuilder, Health
+from ros_common.errors import ConfigError, InputRejected
+from ros_common.mapstore import answer_save_request, save_under_lock
+from ros_common.poses import NoPoses, OdometryBuffer, PoseSource
+from ros_common.process import finish_and_save, run_node
+from ros_common.qos import CANDIDATE_QOS, QOS_ADAPTED, SensorSubscription
+from ros_common.ros_params import RuntimeParameters, declare
+from ros_common.stamps import NS_PER_S, stamp_ns
+from ros_common.stats import Counts, RateMeter, WarnOnce, Window
+from ros_common.worker import Worker
 
 from .config import NodeConfig
-from .diagnostics import DiagnosticsBuilder, Health
-from .errors import ConfigError, InputRejected
 from .inputs import CLOUD_NAN, camera_input, cloud_points, compressed_payload, odometry_pose, raw_payload
-from .mapstore import answer_save_request, load_prior_map, save_map, save_under_lock
+from .mapstore import load_prior_map, save_map
 from .markers import LoopMarkers, MarkerSink, NoMarkers
 from .outputs import candidates_msg, loop_closure_msg
-from .params import Settings, all_leaves, describe, settings_from
-from .poses import NoPoses, OdometryBuffer, PoseSource
-from .process import finish_and_save, run_node
-from .qos import CANDIDATE_QOS, QOS_ADAPTED, SensorSubscription
-from .ros_params import RuntimeParameters, declare
-from .stamps import NS_PER_S, stamp_ns
-from .stats import Counts, RateMeter, WarnOnce, Window
+from .params import Settings, all_leaves, describe_all, settings_from
 from .sync import LATE_IMAGE, TIME_JUMPED, SyncedFrame, Synchroniser
-from .worker import Worker
 
 NODE_NAME = "lcpr"
 BUSY = "frame: replaced while busy"
@@ -104,10 +105,10 @@ class LcprNode(Node):
         self.create_timer(RELEASE_PERIOD, self._release)
         self.create_timer(node_cfg.diagnostics.period, self._publish_diagnostics)
 
-        self.worker: Worker[SyncedFrame] = Worker(self._process, on_replaced=self._on_replaced,
+        self.worker: Worker[SyncedFrame] = Worker(self._process, on_dropped=self._on_replaced, name="lcpr-worker",
                                                   on_error=self._on_failed)
         self.worker.start()
-        RuntimeParameters(self, self._leaves, self._apply)
+        RuntimeParameters(self, self._leaves, self._apply, build=settings_from)
         where = node_cfg.map.path or "memory only"
         log.info(f"ready: {len(node_cfg.camera_topics)} cameras, lidar {node_cfg.lidar_topic}, "
                  f"odometry {node_cfg.odom_topic or 'none'}; map {where} with {len(self.detector.map)} places")
@@ -314,7 +315,7 @@ def _parser() -> argparse.ArgumentParser:
         prog="lcpr_node",
         description="LCPR loop-closure detection node (node name 'lcpr'). Set parameters with "
                     "--ros-args -p name:=value or --ros-args --params-file config/lcpr.yaml.",
-        epilog="parameters:\n" + describe(all_leaves()),
+        epilog="parameters:\n" + describe_all(),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
 

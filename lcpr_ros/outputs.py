@@ -5,7 +5,7 @@ verified candidate with the best fitness; with ``verify.enabled`` false, the nea
 descriptor), the input LIO-SAM's ``lio_loop/loop_closure_detection`` expects.
 ``~/candidates``: one row per candidate, verified or not; ``layout.dim[0]`` =
 ("candidates", rows, rows * cols), ``layout.dim[1]`` = (comma-separated column names,
-cols, cols). ``tx..qw`` is match_T_query (the query keyframe's LiDAR frame in the match
+cols, cols) (:mod:`ros_common.tables`). ``tx..qw`` is match_T_query (the query keyframe's LiDAR frame in the match
 keyframe's LiDAR frame), ``cov_0..cov_35`` its 6 x 6 covariance row-major over
 (x, y, z, roll, pitch, yaw) as in geometry_msgs/PoseWithCovariance; NaN where the
 candidate was not registered.
@@ -14,13 +14,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import Any
 
 import numpy as np
-from std_msgs.msg import Float64MultiArray, MultiArrayDimension, MultiArrayLayout
+from std_msgs.msg import Float64MultiArray
 
 from lcpr_core.detector import Candidate, Result
 from msg_tools.geometry import matrix_to_quaternion, quaternion_to_matrix
+from ros_common.tables import parse_candidates, table_msg
+
+__all__ = ["CANDIDATE_COLUMNS", "candidates_msg", "loop_closure_msg", "parse_candidates", "row_covariance", "row_pose"]
 
 POSE_COLUMNS: tuple[str, ...] = ("tx", "ty", "tz", "qx", "qy", "qz", "qw")
 COVARIANCE_COLUMNS: tuple[str, ...] = tuple(f"cov_{i}" for i in range(36))
@@ -51,26 +53,7 @@ def loop_closure_msg(result: Result) -> Float64MultiArray | None:
 def candidates_msg(result: Result) -> Float64MultiArray | None:
     if not result.candidates:
         return None
-    rows, cols = len(result.candidates), len(CANDIDATE_COLUMNS)
-    layout = MultiArrayLayout(dim=[
-        MultiArrayDimension(label="candidates", size=rows, stride=rows * cols),
-        MultiArrayDimension(label=",".join(CANDIDATE_COLUMNS), size=cols, stride=cols),
-    ], data_offset=0)
-    data = [value for c in result.candidates for value in _row(c)]
-    return Float64MultiArray(layout=layout, data=data)
-
-
-def parse_candidates(msg: Any) -> list[dict[str, float]]:
-    """A ``~/candidates`` message -> one dict per row, keyed by the column names it carries."""
-    dims = msg.layout.dim
-    if len(dims) != 2:
-        raise ValueError(f"expected a 2-D layout (candidates x columns), got {len(dims)} dimensions")
-    names = dims[1].label.split(",")
-    rows, cols = int(dims[0].size), int(dims[1].size)
-    if cols != len(names) or len(msg.data) < msg.layout.data_offset + rows * cols:
-        raise ValueError(f"layout {rows} x {cols} with columns {names} does not fit {len(msg.data)} values")
-    data = list(msg.data)[msg.layout.data_offset:]
-    return [dict(zip(names, data[r * cols:(r + 1) * cols], strict=True)) for r in range(rows)]
+    return table_msg([_row(c) for c in result.candidates], CANDIDATE_COLUMNS)
 
 
 def row_pose(row: Mapping[str, float]) -> np.ndarray | None:

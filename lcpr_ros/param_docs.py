@@ -7,25 +7,17 @@ fields added to the core show up without touching this table.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 from lcpr_core.describer import PRECISIONS, RUNTIMES
 from lcpr_core.descriptor_map import INDEX_TYPES
 from lcpr_core.preprocess import CUSTOM, PRESETS
+from ros_common.config import INPUT_QOS
+from ros_common.params import ParamDoc
 
-from .config import CAMERA_TYPES, INPUT_QOS
+from .config import CAMERA_TYPES
 
 INF = math.inf
 BIG = 2**31 - 1
-
-
-@dataclass(frozen=True)
-class ParamDoc:
-    description: str
-    low: float | None = None  # inclusive range (FloatingPointRange / IntegerRange)
-    high: float | None = None
-    choices: tuple[str, ...] = ()  # accepted strings, shown in additional_constraints
-    dynamic: bool = False  # may change while the node runs (others are read-only)
 
 
 DOCS: dict[str, ParamDoc] = {
@@ -119,8 +111,3 @@ DOCS: dict[str, ParamDoc] = {
     "diagnostics.period": ParamDoc("s between /diagnostics messages", 0.05, 3600.0),
     "diagnostics.window": ParamDoc("latest frames in the latency percentiles", 1, 100000),
 }
-
-
-def doc_for(name: str, owner: str) -> ParamDoc:
-    """The entry for ``name``, or a generic one naming the dataclass field it mirrors."""
-    return DOCS.get(name) or ParamDoc(f"{owner}.{name.rsplit('.', 1)[-1]}")

@@ -50,8 +50,7 @@ from rclpy.utilities import remove_ros_args
 from msg_tools.bags.open import open_bag
 from msg_tools.errors import BagError
 from msg_tools.progress import progress_bar
-
-from .stamps import NS_PER_S
+from ros_common.stamps import NS_PER_S
 
 QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)

@@ -35,10 +35,10 @@ from typing import Any
 import numpy as np
 
 from msg_tools.bags.sync import nearest_within
+from ros_common.poses import NoPoses, PoseSource
+from ros_common.stamps import NS_PER_S, StampOrder
 
 from .config import SyncConfig
-from .poses import NoPoses, PoseSource
-from .stamps import NS_PER_S, StampOrder
 
 NO_CAMERA = "frame: no camera"
 LATE_IMAGE = "image: arrived after its frame"

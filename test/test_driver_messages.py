@@ -7,8 +7,8 @@ import pytest
 from driver_layouts import LAYOUTS, driver_cloud, scan
 from lcpr_core.preprocess import range_image
 from lcpr_ros import inputs
-from lcpr_ros.errors import InputRejected
 from msg_tools import pointcloud2_to_array
+from ros_common.errors import InputRejected
 
 
 def _rows(name: str) -> int:

@@ -152,10 +152,11 @@ def test_a_save_killed_with_sigkill_leaves_the_old_map_intact_and_loadable(tmp_p
 
 def test_the_save_map_service_answers_a_full_disk_with_the_cause_and_the_old_map_stays(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """What ~/save_map does (lcpr_ros.mapstore): success false, the OS error in the message, nothing raised."""
+    """What ~/save_map does (ros_common.mapstore): success false, the OS error in the message, nothing raised."""
     from types import SimpleNamespace
 
-    from lcpr_ros.mapstore import answer_save_request, save_map
+    from lcpr_ros.mapstore import save_map
+    from ros_common.mapstore import answer_save_request
 
     path = tmp_path / "map.npz"
     a_map(20).save(path)

@@ -16,9 +16,9 @@ from sensor_msgs.msg import Image, PointCloud2
 
 from camera_encodings import mosaic, nv21, packed_yuv422
 from driver_layouts import LAYOUTS, driver_cloud
-from lcpr_ros.harness import SENSOR_PUB_QOS, spinning, synthetic_place, wait_until
 from lcpr_ros.node import LcprNode
 from msg_tools import array_to_image
+from ros_common.harness import SENSOR_PUB_QOS, spinning, synthetic_place, wait_until
 
 PREFIX = f"/d{random.randint(0, 10**6)}"
 CAMERAS = [f"{PREFIX}/CAM_{k}/image_raw" for k in range(6)]
@@ -128,7 +128,7 @@ def test_with_the_default_input_qos_a_best_effort_driver_is_heard_too(ros: Ros) 
         before = len(ros.node.detector.map)
         publish(best_effort, place.rgb, "rgb8", cloud, stamp)
         assert len(ros.node.detector.map) == before + 1
-        from lcpr_ros.qos import QOS_ADAPTED
+        from ros_common.qos import QOS_ADAPTED
 
         assert QOS_ADAPTED in ros.node.warnings.causes  # said once, naming the topic
     finally:

@@ -28,8 +28,9 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from lcpr_core.descriptor_map import DescriptorMap
 from lcpr_ros import inputs
-from lcpr_ros.errors import ConfigError, MapLoadError
-from lcpr_ros.harness import (
+from lcpr_ros.node import CANDIDATE_QOS, LcprNode
+from ros_common.errors import ConfigError, MapLoadError
+from ros_common.harness import (
     FramePublisher,
     OutputListener,
     Place,
@@ -44,7 +45,6 @@ from lcpr_ros.harness import (
     truncated_cloud,
     wait_until,
 )
-from lcpr_ros.node import CANDIDATE_QOS, LcprNode
 
 T0 = 1_700_000_000.0  # epoch-like header stamps
 WAIT = 60.0  # s: generous bound for one frame on a loaded 2-core machine

@@ -13,9 +13,10 @@ from rclpy.parameter import Parameter
 
 from lcpr_core.detector import DetectorConfig, MatchConfig
 from lcpr_ros.config import NodeConfig, SyncConfig
-from lcpr_ros.errors import ConfigError
-from lcpr_ros.params import Settings, all_leaves, build, leaves, settings_from, to_yaml
-from lcpr_ros.ros_params import RuntimeParameters, declare
+from lcpr_ros.params import Settings, all_leaves, settings_from
+from ros_common.errors import ConfigError
+from ros_common.params import build, leaves, to_yaml
+from ros_common.ros_params import RuntimeParameters, declare
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = "lcpr_loop_closure"
@@ -137,7 +138,7 @@ def test_run_time_changes_are_validated_by_building_the_config(context) -> None:
     try:
         leaves_ = all_leaves()
         settings_from(declare(node, leaves_))
-        RuntimeParameters(node, leaves_, applied.append)
+        RuntimeParameters(node, leaves_, applied.append, build=settings_from)
         ok = node.set_parameters([Parameter("match.top_k", value=7)])[0]
         assert ok.successful and applied[-1].detector.match.top_k == 7
         refused = node.set_parameters([Parameter("sync.min_cameras", value=7)])[0]

@@ -16,7 +16,7 @@ from rclpy.node import Node
 
 from lcpr_core.descriptor_map import DescriptorMap
 from lcpr_ros import inputs
-from lcpr_ros.harness import (
+from ros_common.harness import (
     FramePublisher,
     OutputListener,
     cloud_with_nan,

@@ -19,13 +19,13 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CompressedImage, PointCloud2
 
-from lcpr_ros.harness import driver_node, synthetic_place
 from lcpr_ros.replay import message_class, replay, shared_memory_profile
 from msg_tools.bags import BagWriter
 from msg_tools.compressed import compressed_from_bytes
 from msg_tools.frames import CameraModel
 from msg_tools.pointcloud import array_to_pointcloud2, xyz_cloud
 from msg_tools.types import Stamp
+from ros_common.harness import driver_node, synthetic_place
 
 REPO = Path(__file__).resolve().parents[1]
 DOMAIN = random.randint(1, 100)

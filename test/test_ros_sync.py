@@ -1,4 +1,4 @@
-"""The node's pure-Python parts: synchronisation, odometry poses, the single-slot worker, statistics."""
+"""The nodes' pure-Python parts: synchronisation, odometry poses, the worker and its queue, statistics."""
 from __future__ import annotations
 
 import threading
@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from lcpr_ros.config import SyncConfig
-from lcpr_ros.poses import NoPoses, OdometryBuffer
-from lcpr_ros.stamps import DUPLICATE, OUT_OF_ORDER
-from lcpr_ros.stats import RateMeter, WarnOnce, Window
 from lcpr_ros.sync import BACKLOG, NO_CAMERA, Synchroniser
-from lcpr_ros.worker import LatestSlot, Worker
+from ros_common.poses import NoPoses, OdometryBuffer
+from ros_common.stamps import DUPLICATE, OUT_OF_ORDER
+from ros_common.stats import RateMeter, WarnOnce, Window
+from ros_common.worker import DropOldestQueue, Worker
 
 MS = 1_000_000
 S = 1_000_000_000
@@ -211,11 +211,19 @@ def test_the_odometry_buffer_stays_bounded() -> None:
 
 # -- worker -------------------------------------------------------------------------------------
 def test_the_slot_keeps_only_the_newest_item() -> None:
-    slot: LatestSlot[int] = LatestSlot()
-    assert slot.put(1) is None
-    assert slot.put(2) == 1
+    slot: DropOldestQueue[int] = DropOldestQueue(1)
+    assert slot.put(1) == []
+    assert slot.put(2) == [1]
     assert slot.take(0.1) == 2
     assert slot.take(0.01) is None
+
+
+def test_a_longer_queue_keeps_the_newest_items_in_order_and_drops_the_oldest() -> None:
+    queue: DropOldestQueue[int] = DropOldestQueue(3)
+    dropped = [d for i in range(5) for d in queue.put(i)]
+    assert dropped == [0, 1] and len(queue) == 3
+    assert [queue.take(0.1) for _ in range(3)] == [2, 3, 4]
+    assert queue.close(keep=False) == [] and queue.put(9) == [9]
 
 
 def test_a_busy_worker_drops_older_waiting_frames_and_never_queues_more_than_one() -> None:
@@ -228,7 +236,7 @@ def test_a_busy_worker_drops_older_waiting_frames_and_never_queues_more_than_one
         release.wait(5)
         handled.append(item)
 
-    worker: Worker[int] = Worker(handle, on_replaced=replaced.append)
+    worker: Worker[int] = Worker(handle, on_dropped=replaced.append)
     worker.start()
     worker.submit(0)
     assert started.wait(5)

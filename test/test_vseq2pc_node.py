@@ -35,13 +35,13 @@ from std_srvs.srv import Trigger
 from citysim import SynthConfig, SyntheticDrive
 from lcpr_core.pretrained import default_vseq2pc_weights
 from lcpr_core.vseq2pc.sequence import sequence_table
-from lcpr_ros.errors import ConfigError, MapLoadError
-from lcpr_ros.harness import OutputListener, spinning, wait_until
 from msg_tools.camera_info import model_to_camera_info
 from msg_tools.frames import CameraModel
 from msg_tools.image import array_to_image
 from msg_tools.pointcloud import array_to_pointcloud2
 from msg_tools.transforms import pose_to_odometry
+from ros_common.errors import ConfigError, MapLoadError
+from ros_common.harness import OutputListener, spinning, wait_until
 from vseq2pc_ros import inputs
 from vseq2pc_ros.node import Vseq2pcNode
 from vseq2pc_ros.sync import TIME_JUMPED

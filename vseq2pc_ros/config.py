@@ -12,15 +12,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from lcpr_core.keyframes import KeyframeConfig
+from lcpr_core.vseq2pc.detector import SequenceDetectorConfig
 from lcpr_core.vseq2pc.retrieval import SearchConfig
 from lcpr_core.vseq2pc.sequence import OFFSETS, SequenceConfig
-from lcpr_ros.config import (
-    INPUT_QOS,
-    MapFileConfig,
-    require,
-    require_finite_non_negative,
-)
 from msg_tools.frames import KITTI_TOPICS
+from ros_common.config import INPUT_QOS, DiagnosticsConfig, MapFileConfig, require, require_finite_non_negative
 
 EXTRINSICS_FORMATS = ("xyz_rpy", "matrix")
 HALF_PI = math.pi / 2
@@ -93,6 +90,9 @@ class FilterConfig:
     def __post_init__(self) -> None:
         require_finite_non_negative(self, "min_distance", "min_interval")
 
+    def keyframes(self) -> KeyframeConfig:
+        return KeyframeConfig(min_interval=self.min_interval, min_distance=self.min_distance)
+
 
 @dataclass(frozen=True)
 class ExtrinsicsConfig:
@@ -157,16 +157,6 @@ class WorkerConfig:
 
 
 @dataclass(frozen=True)
-class DiagnosticsConfig:
-    period: float = 1.0
-    window: int = 200
-
-    def __post_init__(self) -> None:
-        require(math.isfinite(self.period) and self.period > 0, f"period={self.period}; it must be > 0")
-        require(self.window >= 1, f"window={self.window}; it must be >= 1")
-
-
-@dataclass(frozen=True)
 class NodeConfig:
     lidar_topic: str = KITTI_TOPICS.lidar
     depth_topic: str = KITTI_TOPICS.depth[0]
@@ -174,7 +164,7 @@ class NodeConfig:
     camera_info_topic: str = KITTI_TOPICS.camera_info[0]
     image_topic: str = KITTI_TOPICS.cameras[0]  # counted in diagnostics only; "" = not subscribed
     odom_topic: str = KITTI_TOPICS.odom
-    input_qos: str = "best_available"  # lcpr_ros.qos
+    input_qos: str = "best_available"  # ros_common.qos
     model: Vseq2pcModelConfig = field(default_factory=Vseq2pcModelConfig)
     match: Vseq2pcMatchConfig = field(default_factory=Vseq2pcMatchConfig)
     sequence: SequenceParams = field(default_factory=SequenceParams)
@@ -193,3 +183,10 @@ class NodeConfig:
         topics = [t for t in (self.lidar_topic, self.depth_topic, self.labels_topic, self.camera_info_topic,
                               self.image_topic, self.odom_topic) if t]
         require(len(set(topics)) == len(topics), f"topics {topics} repeat a name; give one topic per stream")
+
+    def detector(self) -> SequenceDetectorConfig:
+        """The core detector's settings (lcpr_core.vseq2pc.detector) from the node's parameters."""
+        return SequenceDetectorConfig(
+            scan=self.scan.keyframes(), camera=self.camera.keyframes(), sequence=self.sequence.builder(),
+            search=self.match.search(), min_probability=self.match.min_probability,
+            lidar_T_cam=tuple(self.extrinsics.lidar_T_cam().ravel().tolist()))

@@ -1,6 +1,6 @@
 """Messages -> arrays for VSeq2PC, refusing bad ones with a short, stable reason.
 
-Every refusal is an :class:`~lcpr_ros.errors.InputRejected` whose ``reason`` is one of
+Every refusal is an :class:`~ros_common.errors.InputRejected` whose ``reason`` is one of
 the constants below; the node counts them in /diagnostics and warns once per reason.
 """
 from __future__ import annotations
@@ -9,8 +9,11 @@ from typing import Any
 
 import numpy as np
 
-from lcpr_ros.errors import InputRejected
-from lcpr_ros.inputs import (  # noqa: F401 - the shared reasons are part of this module's vocabulary
+from msg_tools.camera_info import camera_info_to_model
+from msg_tools.errors import CameraInfoError, ImageEncodingError, ImageError
+from msg_tools.image import depth_to_metres, image_to_array
+from ros_common.errors import InputRejected
+from ros_common.inputs import (  # noqa: F401 - the shared reasons are part of this module's vocabulary
     CLOUD_BAD_LAYOUT,
     CLOUD_NAN,
     CLOUD_NO_XYZ,
@@ -19,9 +22,6 @@ from lcpr_ros.inputs import (  # noqa: F401 - the shared reasons are part of thi
     finite_points,
     odometry_pose,
 )
-from msg_tools.camera_info import camera_info_to_model
-from msg_tools.errors import CameraInfoError, ImageEncodingError, ImageError
-from msg_tools.image import depth_to_metres, image_to_array
 
 CLOUD_NO_LABEL = "cloud: no label field"
 DEPTH_ENCODING = "depth: unknown encoding"

@@ -7,8 +7,10 @@ camera-to-LiDAR extrinsics and the odometry pose make one camera feature per fra
 once the vehicle is 5/10/15 m further on, the query frame's sequence is described and
 matched against the scans older than ``match.exclude_recent_s``. Outputs: ``~/loop_closure``,
 ``~/candidates`` (lcpr_node's layouts; distance = 1 - probability) and ``/diagnostics``.
-Conversion, pairing and pose lookup run on the callback thread; features, the networks and
-the map on one worker thread. See ``vseq2pc_node --help``.
+The detection itself is :class:`lcpr_core.vseq2pc.detector.SequenceDetector`; this node
+declares parameters, converts messages, pairs them with poses and calls it. Conversion,
+pairing, pose lookup and keyframe decisions run on the callback thread; features, the
+networks and the map on one worker thread. See ``vseq2pc_node --help``.
 """
 from __future__ import annotations
 
@@ -31,26 +33,26 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
-from lcpr_core.keyframes import KeyframeGate
-from lcpr_core.preprocess.structure import camera_feature, structure_feature
-from lcpr_core.vseq2pc import SequenceBuilder, Vseq2pcNet
-from lcpr_ros.diagnostics import DiagnosticsBuilder, Health
-from lcpr_ros.errors import ConfigError, InputRejected
-from lcpr_ros.mapstore import answer_save_request, save_under_lock
-from lcpr_ros.poses import OdometryBuffer
-from lcpr_ros.process import finish_and_save, run_node
-from lcpr_ros.qos import CANDIDATE_QOS, QOS_ADAPTED, SensorSubscription
-from lcpr_ros.ros_params import declare
-from lcpr_ros.stamps import NS_PER_S, StampOrder, stamp_ns
-from lcpr_ros.stats import Counts, RateMeter, WarnOnce, Window
+from lcpr_core.keyframes import KEYFRAME
+from lcpr_core.vseq2pc import Vseq2pcMap, Vseq2pcNet
+from lcpr_core.vseq2pc.detector import CameraFrame, LabelledScan, SequenceDetector
+from ros_common.diagnostics import DiagnosticsBuilder, Health
+from ros_common.errors import ConfigError, InputRejected
+from ros_common.mapstore import answer_save_request, save_under_lock
+from ros_common.poses import OdometryBuffer
+from ros_common.process import finish_and_save, run_node
+from ros_common.qos import CANDIDATE_QOS, QOS_ADAPTED, SensorSubscription
+from ros_common.ros_params import declare
+from ros_common.stamps import NS_PER_S, StampOrder, stamp_ns
+from ros_common.stats import Counts, RateMeter, WarnOnce, Window
+from ros_common.worker import Worker
 
 from .config import NodeConfig
 from .inputs import CLOUD_NAN, SIZE_MISMATCH, depth_image, intrinsics, label_image, labelled_cloud, odometry_pose
 from .mapstore import open_map
-from .outputs import candidate_rows, loop_closure_msg, table_msg
+from .outputs import candidates_msg, loop_closure_msg
 from .params import all_leaves, describe_all, make_runtime, settings_from
 from .sync import NO_PAIR, TIME_JUMPED, ImagePairs, PoseQueue
-from .worker import FifoWorker
 
 NODE_NAME = "vseq2pc"
 BUSY = "worker: item dropped while busy"
@@ -62,21 +64,15 @@ SHUTDOWN_TIMEOUT = 60.0
 @dataclass
 class ScanItem:
     stamp_ns: int
-    points: np.ndarray
-    labels: np.ndarray
-    pose: np.ndarray
+    scan: LabelledScan
     arrival: float
 
 
 @dataclass
 class CameraItem:
     stamp_ns: int
-    depth: np.ndarray
-    labels: np.ndarray
-    K: np.ndarray
-    pose: np.ndarray
+    frame: CameraFrame  # frame.session: header-time sessions started so far
     arrival: float
-    timeline: int  # header-time sessions started so far: a sequence never spans two
 
 
 def build_net(cfg: NodeConfig) -> Vseq2pcNet:
@@ -114,11 +110,9 @@ class Vseq2pcNode(Node):
         if not cfg.model.sequence:
             log.warning(f"model.sequence and model.descriptor are empty: seeded random weights (seed "
                         f"{cfg.model.seed}), for testing only; matches mean nothing")
-        self.map = open_map(cfg.map.path, self.net, cfg.match.search())
+        self.detector = SequenceDetector(cfg.detector(), net=self.net,
+                                         prior_map=open_map(cfg.map.path, self.net, cfg.match.search()))
         self._map_lock = threading.Lock()
-        self.builder = SequenceBuilder(cfg.sequence.builder())
-        self._frame_index = 0
-        self._builder_timeline = 0  # worker thread: the camera timeline the builder's frames come from
 
         self._sensor_subscriptions: list[SensorSubscription] = []
         self._input_qos = cfg.input_qos
@@ -130,7 +124,6 @@ class Vseq2pcNode(Node):
         self._cloud_order = StampOrder(round(cfg.sync.jump_back * NS_PER_S))
         self._timelines = {"cloud": 0, "camera": 0}  # odometry timeline each stream follows (follow_jump)
         self.camera_sessions = 0  # times header time jumped back on the depth or the label stream
-        self._scan_filter, self._camera_filter = KeyframeGate(), KeyframeGate()  # lcpr_core.keyframes: one rule
         self._camera: tuple[np.ndarray, int, int] | None = None  # K, width, height
 
         self._loop_pub = self.create_publisher(Float64MultiArray, "~/loop_closure", CANDIDATE_QOS)
@@ -148,12 +141,17 @@ class Vseq2pcNode(Node):
         self.create_timer(RELEASE_PERIOD, self._release)
         self.create_timer(cfg.diagnostics.period, self._publish_diagnostics)
 
-        self.worker: FifoWorker[ScanItem | CameraItem] = FifoWorker(
-            self._process, max_waiting=cfg.worker.max_waiting, on_dropped=self._on_dropped, on_error=self._on_failed)
+        self.worker: Worker[ScanItem | CameraItem] = Worker(
+            self._process, max_waiting=cfg.worker.max_waiting, on_dropped=self._on_dropped, on_error=self._on_failed,
+            name="vseq2pc-worker")
         self.worker.start()
         make_runtime(self, self._leaves, self._apply)
         log.info(f"ready: lidar {cfg.lidar_topic}, depth {cfg.depth_topic}, labels {cfg.labels_topic}, odometry "
                  f"{cfg.odom_topic}; map {cfg.map.path or 'memory only'} with {len(self.map)} scans")
+
+    @property
+    def map(self) -> Vseq2pcMap:
+        return self.detector.map
 
     # -- inputs (callback thread) -------------------------------------------------------------
     def _reject(self, err: InputRejected) -> None:
@@ -200,7 +198,7 @@ class Vseq2pcNode(Node):
         if self._cloud_order.jumped_from is not None:
             self._time_jumped("cloud", ns, self._cloud_order.jumped_from)
             self.scan_queue.forget_after(ns)
-            self._scan_filter.reset()
+            self.detector.restart_keyframing("scan")
         if removed:
             self.fixes.add(CLOUD_NAN, removed)
             self.warnings(CLOUD_NAN, f"{removed} of {removed + len(points)} points had NaN/inf x, y or z")
@@ -226,7 +224,7 @@ class Vseq2pcNode(Node):
             self._time_jumped(kind, ns, jumped_from)
             self.camera_sessions += 1
             self.camera_queue.forget_after(ns)
-            self._camera_filter.reset()
+            self.detector.restart_keyframing("camera")
         if self.pairs.unpaired > before:
             self.drops.add(NO_PAIR, self.pairs.unpaired - before)
             self.warnings(NO_PAIR, f"no partner within sync.slop={self.settings.sync.slop} s")
@@ -252,15 +250,14 @@ class Vseq2pcNode(Node):
     def _release(self) -> None:
         if self._closed:
             return
-        cfg = self.settings
         before = sum(self.scan_queue.drops.values()) + sum(self.camera_queue.drops.values())
         for item, pose in self.scan_queue.ready():
             points, labels, arrival = item.payload
-            if not self._scan_filter.keep(item.stamp_ns / 1e9, pose, min_distance=cfg.scan.min_distance,
-                                          min_interval=cfg.scan.min_interval):
+            stamp = item.stamp_ns / NS_PER_S
+            if self.detector.scan_keyframe(stamp, pose) != KEYFRAME:
                 self.decisions.add("scans skipped (scan.min_distance / min_interval)")
                 continue
-            self.worker.submit(ScanItem(item.stamp_ns, points, labels, pose, arrival))
+            self.worker.submit(ScanItem(item.stamp_ns, LabelledScan(stamp, points, labels, pose), arrival))
         for item, pose in self.camera_queue.ready(lambda payload: self._camera is not None):
             depth, labels, arrival = item.payload
             assert self._camera is not None
@@ -269,11 +266,12 @@ class Vseq2pcNode(Node):
                 self._reject(InputRejected(SIZE_MISMATCH, f"images {depth.shape[1]} x {depth.shape[0]}, "
                                                           f"camera_info {width} x {height}"))
                 continue
-            if not self._camera_filter.keep(item.stamp_ns / 1e9, pose, min_distance=cfg.camera.min_distance,
-                                            min_interval=cfg.camera.min_interval):
+            stamp = item.stamp_ns / NS_PER_S
+            if self.detector.camera_keyframe(stamp, pose) != KEYFRAME:
                 self.decisions.add("camera frames skipped (camera.min_distance / min_interval)")
                 continue
-            self.worker.submit(CameraItem(item.stamp_ns, depth, labels, K, pose, arrival, self.camera_sessions))
+            frame = CameraFrame(stamp, depth, labels, K, pose, session=self.camera_sessions)
+            self.worker.submit(CameraItem(item.stamp_ns, frame, arrival))
         after = sum(self.scan_queue.drops.values()) + sum(self.camera_queue.drops.values())
         if after > before:
             for queue in (self.scan_queue, self.camera_queue):
@@ -284,40 +282,27 @@ class Vseq2pcNode(Node):
     def _process(self, item: ScanItem | CameraItem) -> None:
         start = time.monotonic()
         if isinstance(item, ScanItem):
-            feature = structure_feature(item.points, item.labels)
             with self._map_lock:
-                self.map.add_feature(feature, stamp=item.stamp_ns / NS_PER_S, pose=item.pose)
+                self.detector.add_scan(item.scan)
             self.session_scans += 1
             self.decisions.add("scans added")
             self.model_time.add(time.monotonic() - start)
             return
-        cfg = self.settings
-        if item.timeline != self._builder_timeline:  # header time jumped back: start sequences afresh
-            unfinished = self.builder.pending
-            self.builder.reset()
-            self._builder_timeline = item.timeline
-            if unfinished:
-                self.decisions.add("queries left unfinished by a time jump", unfinished)
-        feature = camera_feature(item.depth, item.labels, item.K, cfg.extrinsics.lidar_T_cam())
-        batch = self.builder.push(feature, stamp=item.stamp_ns / NS_PER_S, pose=item.pose, index=self._frame_index)
-        self._frame_index += 1
-        self.decisions.add("camera frames")
-        if batch is None:
-            return
         with self._map_lock:
-            self.map.config = cfg.match.search()
-            results = self.map.query(batch)
-        min_p = cfg.match.min_probability
-        for q, matches in enumerate(results):
+            result = self.detector.process(item.frame)
+        if result.unfinished:
+            self.decisions.add("queries left unfinished by a time jump", result.unfinished)
+        self.decisions.add("camera frames")
+        if not result.queries:
+            return
+        for query in result.queries:
             self.queries += 1
             self.decisions.add("queries")
-            kept = [m for m in matches if m.probability >= min_p]
-            if not kept:
+            if query.loop is None:
                 self.decisions.add("queries without candidates")
                 continue
-            q_stamp, q_id = float(batch.query_stamps[q]), int(batch.query_indices[q])
-            self._candidates_pub.publish(table_msg(candidate_rows(q_stamp, q_id, kept)))
-            self._loop_pub.publish(loop_closure_msg(q_stamp, kept[0]))
+            self._candidates_pub.publish(candidates_msg(query.stamp, query.query_id, query.candidates))
+            self._loop_pub.publish(loop_closure_msg(query.stamp, query.loop))
             self.loops += 1
         self.latency.add(time.monotonic() - item.arrival)
         self.model_time.add(time.monotonic() - start)
@@ -335,6 +320,7 @@ class Vseq2pcNode(Node):
     # -- parameters, map, diagnostics ----------------------------------------------------------
     def _apply(self, settings: NodeConfig) -> None:
         self.settings = settings
+        self.detector.config = settings.detector()
         self.poses.configure(slop=settings.sync.slop, max_gap=settings.sync.odom_max_gap)
         self.pairs.slop_ns = round(settings.sync.slop * NS_PER_S)
         for queue in (self.scan_queue, self.camera_queue):

@@ -1,8 +1,8 @@
-"""Matches -> std_msgs/Float64MultiArray in lcpr_node's layouts (``lcpr_ros.outputs.parse_candidates`` reads them).
+"""Matches -> std_msgs/Float64MultiArray in lcpr_node's layouts (``ros_common.tables.parse_candidates`` reads them).
 
 ``~/loop_closure``: data = [query_stamp_s, match_stamp_s] of the best candidate.
-``~/candidates``: one row per candidate; ``layout.dim[0]`` = ("candidates", rows, rows * cols),
-``layout.dim[1]`` = (comma-separated column names, cols, cols). Columns: see CANDIDATE_COLUMNS;
+``~/candidates``: one row per candidate, in the table layout of :mod:`ros_common.tables`. Columns: see
+CANDIDATE_COLUMNS;
 ``distance`` is 1 - probability (the network's match probability; lower is better, in [0, 1]),
 ``query_id`` the camera frame number of the query frame, ``match_id`` the scan's map id,
 ``yaw_deg`` the direction (LiDAR frame) of the scan slice the camera matched.
@@ -11,29 +11,21 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from std_msgs.msg import Float64MultiArray, MultiArrayDimension, MultiArrayLayout
+from std_msgs.msg import Float64MultiArray
 
 from lcpr_core.vseq2pc.retrieval import ScanMatch
+from ros_common.tables import table_msg
 
 CANDIDATE_COLUMNS: tuple[str, ...] = (
     "query_stamp", "match_stamp", "query_id", "match_id", "distance", "rank", "probability", "logit", "yaw_deg",
 )
 
 
-def candidate_rows(query_stamp: float, query_id: int, matches: Sequence[ScanMatch]) -> list[list[float]]:
-    return [[float(query_stamp), m.stamp, float(query_id), float(m.id), 1.0 - m.probability, float(m.rank),
+def candidates_msg(query_stamp: float, query_id: int, matches: Sequence[ScanMatch]) -> Float64MultiArray:
+    """One query's candidates as the ``~/candidates`` table (:mod:`ros_common.tables`)."""
+    rows = [[float(query_stamp), m.stamp, float(query_id), float(m.id), 1.0 - m.probability, float(m.rank),
              m.probability, m.logit, m.relative_yaw_deg] for m in matches]
-
-
-def table_msg(rows: Sequence[Sequence[float]], columns: Sequence[str] = CANDIDATE_COLUMNS,
-              label: str = "candidates") -> Float64MultiArray:
-    """Rows x columns -> Float64MultiArray with the column names in ``layout.dim[1].label``."""
-    n, cols = len(rows), len(columns)
-    layout = MultiArrayLayout(dim=[
-        MultiArrayDimension(label=label, size=n, stride=n * cols),
-        MultiArrayDimension(label=",".join(columns), size=cols, stride=cols),
-    ], data_offset=0)
-    return Float64MultiArray(layout=layout, data=[float(v) for row in rows for v in row])
+    return table_msg(rows, CANDIDATE_COLUMNS)
 
 
 def loop_closure_msg(query_stamp: float, best: ScanMatch) -> Float64MultiArray:

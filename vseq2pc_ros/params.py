@@ -1,4 +1,4 @@
-"""NodeConfig <-> ROS parameters, reusing lcpr_ros's generic dataclass walker.
+"""vseq2pc_node's parameters: every leaf of NodeConfig, walked by :mod:`ros_common.params`.
 
 Every leaf of :class:`~vseq2pc_ros.config.NodeConfig` is one parameter named by its
 dotted path (``match.top_k``, ``extrinsics.rpy``, ``map.path`` ...), its default the
@@ -8,14 +8,12 @@ dataclass default. Descriptions, ranges and the run-time-settable flag come from
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 from typing import Any
 
 from rclpy.node import Node
 
-from lcpr_ros.param_docs import ParamDoc
-from lcpr_ros.params import Leaf, build, leaves, to_yaml
-from lcpr_ros.ros_params import RuntimeParameters
+from ros_common.params import Leaf, ParamDoc, build, describe, leaves, to_yaml, unique
+from ros_common.ros_params import RuntimeParameters
 
 from .config import EXTRINSICS_FORMATS, INPUT_QOS, NodeConfig
 
@@ -24,7 +22,7 @@ BIG = 2**31 - 1
 YAML_HEADER = """vseq2pc_node parameters (node name vseq2pc) with their defaults, from vseq2pc_ros.config.NodeConfig.
 Use: vseq2pc_node --ros-args --params-file config/vseq2pc.yaml
 Regenerate after adding fields:
-  python -c "from vseq2pc_ros.params import *; print(yaml_text(), end='')" > config/vseq2pc.yaml
+  python -c "from vseq2pc_ros.params import yaml_text; print(yaml_text(), end='')" > config/vseq2pc.yaml
 """
 
 DOCS: dict[str, ParamDoc] = {
@@ -93,17 +91,9 @@ DOCS: dict[str, ParamDoc] = {
 }
 
 
-@dataclass(frozen=True)
-class VLeaf(Leaf):
-    """A Leaf described by this node's table."""
-
-    @property
-    def doc(self) -> ParamDoc:
-        return DOCS.get(self.name) or ParamDoc(f"{self.owner}.{self.name.rsplit('.', 1)[-1]}")
-
-
-def all_leaves() -> list[VLeaf]:
-    return [VLeaf(leaf.name, leaf.owner, leaf.kind, leaf.array, leaf.default) for leaf in leaves(NodeConfig())]
+def all_leaves() -> list[Leaf]:
+    """Every parameter of the node, names unique."""
+    return unique(leaves(NodeConfig(), docs=DOCS))
 
 
 def settings_from(values: Mapping[str, Any]) -> NodeConfig:
@@ -112,15 +102,15 @@ def settings_from(values: Mapping[str, Any]) -> NodeConfig:
 
 
 def yaml_text() -> str:
+    """config/vseq2pc.yaml: every parameter with its default and description."""
     return to_yaml(all_leaves(), header=YAML_HEADER)
 
 
 def make_runtime(node: Node, leaves_: Sequence[Leaf], apply: Any) -> RuntimeParameters:
-    """lcpr_ros's run-time validation, building this node's config."""
+    """ros_common's run-time validation, building this node's config."""
     return RuntimeParameters(node, leaves_, apply, build=settings_from)
 
 
 def describe_all() -> str:
-    from lcpr_ros.params import describe
-
+    """The parameter list of ``vseq2pc_node --help``."""
     return describe(all_leaves())

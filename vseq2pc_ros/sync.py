@@ -12,8 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from lcpr_ros.poses import PoseSource
-from lcpr_ros.stamps import NS_PER_S, StampOrder
+from ros_common.poses import PoseSource
+from ros_common.stamps import NS_PER_S, StampOrder
 
 NO_PAIR = "camera: depth or labels image without partner"
 NO_POSE = "no pose: odometry does not cover the stamp"

@@ -31,8 +31,8 @@ from msg_tools.image import array_to_image
 from msg_tools.pointcloud import array_to_pointcloud2, xyz_cloud
 from msg_tools.transforms import pose_to_odometry
 
-from .outputs import parse_candidates
 from .qos import CANDIDATE_QOS
+from .tables import parse_candidates
 
 SMALL_IMAGE = (48, 128)  # height, width of synthetic camera images
 

@@ -10,7 +10,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from .errors import ConfigError
-from .params import Leaf, Settings, settings_from
+from .params import Leaf
 
 
 def descriptor(leaf: Leaf) -> ParameterDescriptor:
@@ -57,8 +57,8 @@ class RuntimeParameters:
     half of the parameters missing).
     """
 
-    def __init__(self, node: Node, leaves: Sequence[Leaf], apply: Callable[[Settings], None], *,
-                 build: Callable[[dict[str, Any]], Any] = settings_from) -> None:
+    def __init__(self, node: Node, leaves: Sequence[Leaf], apply: Callable[[Any], None], *,
+                 build: Callable[[dict[str, Any]], Any]) -> None:
         self._node = node
         self._leaves = {leaf.name: leaf for leaf in leaves}
         self._apply = apply

@@ -1,0 +1,208 @@
+"""Typed config <-> ROS parameters, generic over config dataclasses (both nodes use it).
+
+Every leaf field of a config dataclass becomes one parameter named by its dotted path
+(``match.top_k``, ``sync.slop``, ``map.path`` ...), with the dataclass default as its
+default. Going back, the dataclasses are constructed from the parameter values, so
+validation is theirs: a ValueError (or the core's LcprError) raised by a ``__post_init__``
+becomes a :class:`~ros_common.errors.ConfigError` with the reason, at start and when a
+parameter is set at run time. No rclpy import: :mod:`ros_common.ros_params` declares them.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import typing
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from lcpr_core.errors import LcprError
+
+from .errors import ConfigError
+
+SCALARS: tuple[type, ...] = (bool, int, float, str)
+
+
+@dataclass(frozen=True)
+class ParamDoc:
+    description: str
+    low: float | None = None  # inclusive range (FloatingPointRange / IntegerRange)
+    high: float | None = None
+    choices: tuple[str, ...] = ()  # accepted strings, shown in additional_constraints
+    dynamic: bool = False  # may change while the node runs (others are read-only)
+
+
+@dataclass(frozen=True)
+class Leaf:
+    """One parameter: a scalar or tuple field of a config dataclass."""
+
+    name: str  # dotted parameter name
+    owner: str  # the dataclass that holds the field
+    kind: type  # bool | int | float | str (the element type for tuples)
+    array: bool  # a tuple field -> a ROS array parameter
+    default: Any  # Python value (tuple for arrays)
+    doc: ParamDoc  # description, range, accepted values, run-time settable
+
+
+    def to_ros(self, value: Any) -> Any:
+        """Python value -> what rclpy stores (lists for arrays, floats for doubles)."""
+        if self.array:
+            return [self.kind(v) for v in value]
+        return self.kind(value)
+
+    def to_python(self, value: Any) -> Any:
+        """rclpy value (list, array.array, scalar) -> the dataclass field's type."""
+        if self.array:
+            return tuple(self.kind(v) for v in value)
+        return self.kind(value)
+
+
+def _field_kind(owner: type, name: str, hint: Any) -> tuple[type, bool]:
+    """(element type, is_array) of a leaf field annotation."""
+    if hint in SCALARS:
+        return hint, False
+    if typing.get_origin(hint) is tuple:
+        args = [a for a in typing.get_args(hint) if a is not Ellipsis]
+        if args and all(a == args[0] for a in args) and args[0] in SCALARS:
+            return args[0], True
+    raise TypeError(f"{owner.__name__}.{name}: type {hint!r} cannot be a ROS parameter "
+                    "(use bool, int, float, str, a tuple of one of them, or a nested dataclass)")
+
+
+def leaves(config: Any, prefix: str = "", *, docs: Mapping[str, ParamDoc] | None = None) -> list[Leaf]:
+    """The parameters of a config instance (its values are the defaults), depth first, each described
+    by its entry in ``docs`` or, without one, by the dataclass field it mirrors."""
+    cls = type(config)
+    hints = typing.get_type_hints(cls)
+    out: list[Leaf] = []
+    for f in dataclasses.fields(cls):
+        name = f"{prefix}{f.name}"
+        value = getattr(config, f.name)
+        if dataclasses.is_dataclass(value):
+            out.extend(leaves(value, f"{name}.", docs=docs))
+            continue
+        kind, array = _field_kind(cls, f.name, hints[f.name])
+        doc = (docs or {}).get(name) or ParamDoc(f"{cls.__name__}.{f.name}")
+        out.append(Leaf(name, cls.__name__, kind, array, value, doc))
+    return out
+
+
+def build(cls: type, values: Mapping[str, Any], prefix: str = "") -> Any:
+    """An instance of ``cls`` from dotted-name values; absent names keep their defaults.
+
+    Raises ConfigError with the dataclass's own reason, prefixed with the group name.
+    """
+    hints = typing.get_type_hints(cls)
+    kwargs: dict[str, Any] = {}
+    for f in dataclasses.fields(cls):
+        name = f"{prefix}{f.name}"
+        hint = hints[f.name]
+        if isinstance(hint, type) and dataclasses.is_dataclass(hint):  # a nested group (hints are classes)
+            kwargs[f.name] = build(hint, values, f"{name}.")
+        elif name in values:
+            kind, array = _field_kind(cls, f.name, hint)
+            value = values[name]
+            kwargs[f.name] = tuple(kind(v) for v in value) if array else kind(value)
+    try:
+        return cls(**kwargs)
+    except ConfigError:
+        raise
+    except (ValueError, TypeError, LcprError) as err:
+        group = prefix.rstrip(".") or cls.__name__
+        raise ConfigError(f"{group}: {err}") from err
+
+
+def unique(found: Sequence[Leaf]) -> list[Leaf]:
+    """``found`` unchanged; TypeError when two config fields map to one parameter name."""
+    names = [leaf.name for leaf in found]
+    clash = {n for n in names if names.count(n) > 1}
+    if clash:
+        raise TypeError(f"config fields map to the same parameter names: {sorted(clash)}")
+    return list(found)
+
+
+def read_params_file(path: str | os.PathLike[str], leaves_: Sequence[Leaf]) -> dict[str, Any]:
+    """Every leaf's value from a ROS 2 ``--params-file`` (one node section with ``ros__parameters``),
+    leaves absent from it at their defaults; ConfigError names the file and what is wrong with it."""
+    import yaml  # local: only the offline tools read parameter files themselves
+
+    where = os.fspath(path)
+    try:
+        data = yaml.safe_load(Path(where).read_text())
+    except (OSError, yaml.YAMLError) as err:
+        raise ConfigError(f"parameter file {where}: {err}") from err
+    sections = [v for v in data.values() if isinstance(v, dict) and "ros__parameters" in v] \
+        if isinstance(data, dict) else []
+    if len(sections) != 1:
+        raise ConfigError(f"parameter file {where} holds {len(sections)} node sections with ros__parameters; "
+                          "expected one (e.g. '/**: ros__parameters: ...')")
+    values: dict[str, Any] = {leaf.name: leaf.default for leaf in leaves_}
+    given = _flatten(sections[0]["ros__parameters"])
+    unknown = sorted(set(given) - set(values))
+    if unknown:
+        raise ConfigError(f"parameter file {where} names unknown parameters {unknown}")
+    values.update({name: tuple(v) if isinstance(v, list) else v for name, v in given.items()})
+    return values
+
+
+def _flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in tree.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            out.update(_flatten(value, name + "."))
+        else:
+            out[name] = value
+    return out
+
+
+def describe(leaves_: Iterable[Leaf]) -> str:
+    """Human-readable parameter list (``lcpr_node --help``)."""
+    lines = []
+    for leaf in leaves_:
+        doc = leaf.doc
+        extra = []
+        if doc.low is not None:
+            extra.append(f"range {doc.low}..{doc.high}")
+        if doc.choices:
+            extra.append(f"one of {', '.join(doc.choices)}")
+        if doc.dynamic:
+            extra.append("settable at run time")
+        default = list(leaf.default) if leaf.array else leaf.default
+        lines.append(f"  {leaf.name} (default {default!r}{'; ' if extra else ''}{'; '.join(extra)})\n"
+                     f"      {doc.description}")
+    return "\n".join(lines)
+
+
+def to_yaml(leaves_: Iterable[Leaf], node_name: str = "/**", header: str = "") -> str:
+    """A ROS 2 params file (``ros__parameters``) holding every leaf's default, one comment each.
+
+    Leaves sharing a group (``map.dim`` and ``map.path``) go under one key, in order of first use.
+    """
+    import json
+
+    tree: dict[str, Any] = {}
+    for leaf in leaves_:
+        *groups, key = leaf.name.split(".")
+        branch = tree
+        for group in groups:
+            branch = branch.setdefault(group, {})
+        branch[key] = leaf
+
+    lines = [f"# {line}".rstrip() for line in header.splitlines()]
+    lines += [f"{node_name}:", "  ros__parameters:"]
+
+    def emit(branch: dict[str, Any], depth: int) -> None:
+        indent = "  " * depth
+        for key, item in branch.items():
+            if isinstance(item, dict):
+                lines.append(f"{indent}{key}:")
+                emit(item, depth + 1)
+                continue
+            default = list(item.default) if item.array else item.default
+            lines.append(f"{indent}# {item.doc.description}")
+            lines.append(f"{indent}{key}: {json.dumps(default)}")  # JSON values are valid YAML flow values
+
+    emit(tree, 2)
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,35 @@
+"""The candidate table both nodes publish on ``~/candidates``: a std_msgs/Float64MultiArray whose
+``layout.dim[0]`` = ("candidates", rows, rows * cols) and ``layout.dim[1]`` = (comma-separated column
+names, cols, cols), so a reader finds every column by name whichever node wrote it."""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+from std_msgs.msg import Float64MultiArray, MultiArrayDimension, MultiArrayLayout
+
+
+def table_msg(rows: Sequence[Sequence[float]], columns: Sequence[str], label: str = "candidates") -> Float64MultiArray:
+    """Rows x columns -> Float64MultiArray with the column names in ``layout.dim[1].label``."""
+    n, cols = len(rows), len(columns)
+    for i, row in enumerate(rows):
+        if len(row) != cols:
+            raise ValueError(f"row {i} has {len(row)} values; the table has {cols} columns")
+    layout = MultiArrayLayout(dim=[
+        MultiArrayDimension(label=label, size=n, stride=n * cols),
+        MultiArrayDimension(label=",".join(columns), size=cols, stride=cols),
+    ], data_offset=0)
+    return Float64MultiArray(layout=layout, data=[float(v) for row in rows for v in row])
+
+
+def parse_candidates(msg: Any) -> list[dict[str, float]]:
+    """A ``~/candidates`` message -> one dict per row, keyed by the column names it carries."""
+    dims = msg.layout.dim
+    if len(dims) != 2:
+        raise ValueError(f"expected a 2-D layout (candidates x columns), got {len(dims)} dimensions")
+    names = dims[1].label.split(",")
+    rows, cols = int(dims[0].size), int(dims[1].size)
+    if cols != len(names) or len(msg.data) < msg.layout.data_offset + rows * cols:
+        raise ValueError(f"layout {rows} x {cols} with columns {names} does not fit {len(msg.data)} values")
+    data = list(msg.data)[msg.layout.data_offset:]
+    return [dict(zip(names, data[r * cols:(r + 1) * cols], strict=True)) for r in range(rows)]
