@@ -48,21 +48,15 @@ class Row:
 
 
 def rss_mb() -> float:
-    """Resident set size of this process (VmRSS), in MiB."""
-    with open("/proc/self/status") as fh:
-        for line in fh:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    return float("nan")
+    from lcpr_core.timing import memory_mb
+
+    return memory_mb()
 
 
 def peak_rss_mb() -> float:
-    """Peak resident set size of this process (VmHWM), in MiB."""
-    with open("/proc/self/status") as fh:
-        for line in fh:
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024.0
-    return float("nan")
+    from lcpr_core.timing import memory_mb
+
+    return memory_mb(field="VmHWM")
 
 
 def normalise(x: np.ndarray) -> np.ndarray:

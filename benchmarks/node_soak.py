@@ -35,7 +35,6 @@ import argparse
 import json
 import os
 import random
-import re
 import subprocess
 import sys
 import tempfile
@@ -52,6 +51,7 @@ import rclpy  # noqa: E402
 from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 
+from lcpr_core.timing import memory_mb  # noqa: E402
 from ros_common.harness import FramePublisher, OutputListener, interrupt, synthetic_place, wait_until  # noqa: E402
 
 FRAME_DT = 0.5  # s of header time between frames (2 Hz)
@@ -63,11 +63,10 @@ MAP_BYTES_PER_KEYFRAME = 256 * 4 + 8 + 8 + 16 * 8 + 2 + 6 * 3072 + 16
 
 
 def rss_mb(pid: int) -> float:
-    text = Path(f"/proc/{pid}/status").read_text()
-    found = re.search(r"VmRSS:\s+(\d+) kB", text)
-    if found is None:
+    rss = memory_mb(pid)
+    if rss != rss:  # NaN
         raise RuntimeError(f"no VmRSS line in /proc/{pid}/status")
-    return int(found.group(1)) / 1024
+    return rss
 
 
 def start_node(args: argparse.Namespace, domain: int, prefix: str, log: Path) -> subprocess.Popen[bytes]:

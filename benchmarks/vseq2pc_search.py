@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from lcpr_core.models import DescriptorModel
+from lcpr_core.timing import memory_mb
 from lcpr_core.vseq2pc.checkpoint import load_descriptor_state_dict
 from lcpr_core.vseq2pc.retrieval import ScanDatabase, SearchConfig
 
@@ -40,11 +41,7 @@ class Row:
 
 
 def rss_mb() -> float:
-    with open("/proc/self/status") as fh:
-        for line in fh:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    return float("nan")
+    return memory_mb()
 
 
 def build(size: int, rng: np.random.Generator, *, chunk: int = 10000) -> ScanDatabase:

@@ -11,7 +11,6 @@ Distances are Euclidean (L2, not squared), computed by FAISS in float32.
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -24,6 +23,7 @@ from numpy.typing import ArrayLike
 from .errors import LcprError, MapError, MapSchemaError
 from .growable import GrowableArray
 from .map_file import check_header_fields, read_map_file, write_map_file
+from .map_rows import MapRows, RowAccess
 from .verification.clouds import CloudStore
 
 __all__ = ["MapConfig", "Match", "DescriptorMap", "INDEX_TYPES", "SCHEMA_VERSION"]
@@ -83,7 +83,7 @@ class Match:
     rank: int
 
 
-class DescriptorMap:
+class DescriptorMap(RowAccess):
     """Place descriptors (N x D float32) with id, stamp, pose and source per entry.
 
     Ids are int64, assigned consecutively from max id + 1 (0 for an empty map)
@@ -95,15 +95,10 @@ class DescriptorMap:
         self._config = config if config is not None else MapConfig()
         self._index, self._storage = _make_index(self._config)
         self._ef_search = self._config.hnsw_ef_search
-        self._ids = GrowableArray(np.int64)
-        self._stamps = GrowableArray(np.float64)
-        self._poses = GrowableArray(np.float64, (3,))
+        self._rows = MapRows((3,))  # ids, stamps, poses (lcpr_core.map_rows)
         self._source_codes = GrowableArray(np.int32)
         self._source_names: list[str] = []
         self._source_lookup: dict[str, int] = {}
-        self._next_id = 0
-        self._ids_increasing = True  # ids strictly increasing in insertion order
-        self._stamps_sorted = True  # stamps non-decreasing in insertion order
         self.clouds = CloudStore()  # compact keyframe clouds for geometric verification, by id
 
     # ------------------------------------------------------------------ accessors
@@ -115,26 +110,8 @@ class DescriptorMap:
     def dim(self) -> int:
         return self._config.dim
 
-    def __len__(self) -> int:
-        return len(self._ids)
-
     def __repr__(self) -> str:
         return f"DescriptorMap({len(self)} x {self.dim}-d {self._config.model!r}, index={self._config.index!r})"
-
-    @property
-    def ids(self) -> np.ndarray:
-        """(N,) int64, read-only."""
-        return self._ids.view()
-
-    @property
-    def stamps(self) -> np.ndarray:
-        """(N,) float64 seconds, read-only."""
-        return self._stamps.view()
-
-    @property
-    def poses(self) -> np.ndarray:
-        """(N, 3) float64 x, y, z; NaN rows where no pose was given. Read-only."""
-        return self._poses.view()
 
     @property
     def sources(self) -> list[str]:
@@ -171,26 +148,14 @@ class DescriptorMap:
         """
         x = self._check_vectors(descriptors, "descriptors")  # (N, D)
         n = len(x)
-        t = _check_stamps(stamps, n)  # (N,)
-        p = _check_poses(poses, n)  # (N, 3)
+        new_ids, t, p = self._rows.check(n, stamps=stamps, poses=poses, ids=ids)  # (N,), (N,), (N, 3)
         src = _check_sources(sources, n)
-        new_ids = self._check_new_ids(ids, n)  # (N,)
         if n == 0:
             return new_ids
         codes = np.fromiter((self._source_code(s) for s in src), dtype=np.int32, count=n)
-
-        last = self._stamps.view()[-1] if len(self) else -math.inf
-        self._stamps_sorted = self._stamps_sorted and t[0] >= last and bool(np.all(np.diff(t) >= 0))
-        if self._ids_increasing:
-            prev = self._ids.view()[-1] if len(self) else -1
-            self._ids_increasing = new_ids[0] > prev and bool(np.all(np.diff(new_ids) > 0))
-
         self._index.add(x)
-        self._ids.extend(new_ids)
-        self._stamps.extend(t)
-        self._poses.extend(p)
+        self._rows.append(new_ids, t, p)
         self._source_codes.extend(codes)
-        self._next_id = max(self._next_id, int(new_ids.max()) + 1)
         return new_ids.copy()
 
     def _source_code(self, name: str) -> int:
@@ -215,31 +180,6 @@ class DescriptorMap:
         if not np.isfinite(arr).all():
             bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
             raise MapError(f"{what} rows {bad[:5].tolist()} contain NaN or inf (after casting to float32)")
-        return arr
-
-    def _check_new_ids(self, ids: int | ArrayLike | None, n: int) -> np.ndarray:
-        if ids is None:
-            return np.arange(self._next_id, self._next_id + n, dtype=np.int64)
-        arr = np.asarray(ids)
-        if arr.ndim == 0 and n == 1:
-            arr = arr.reshape(1)
-        if arr.shape != (n,):
-            raise MapError(f"ids of shape {tuple(arr.shape)} do not fit {n} descriptors; expected ({n},)")
-        if arr.dtype.kind not in "iu":
-            raise MapError(f"ids have dtype {arr.dtype}; expected an integer dtype")
-        arr = arr.astype(np.int64)
-        if n == 0:
-            return arr
-        if arr.min() < 0:
-            raise MapError(f"id {int(arr.min())} is negative; ids must be >= 0")
-        uniq, counts = np.unique(arr, return_counts=True)
-        if len(uniq) != n:
-            raise MapError(f"ids given to add() repeat (e.g. {int(uniq[counts > 1][0])}); ids must be unique")
-        existing = self._ids.view()
-        if len(existing) and not (self._ids_increasing and uniq[0] > existing[-1]):
-            taken = uniq[np.isin(uniq, existing)]
-            if len(taken):
-                raise MapError(f"ids {taken[:5].tolist()} are already in the map; ids must be unique")
         return arr
 
     # ------------------------------------------------------------------ search
@@ -283,8 +223,8 @@ class DescriptorMap:
             return empty
         if after is None:
             return self._index_search(q, k, None)
-        stamps = self._stamps.view()
-        if self._stamps_sorted:
+        stamps = self._rows.stamps
+        if self._rows.stamps_sorted:
             end = int(np.searchsorted(stamps, after, side="right"))  # rows [0, end) allowed
             if end == 0:
                 return empty
@@ -327,9 +267,9 @@ class DescriptorMap:
         if max_distance is not None:
             inside = dist <= max_distance
             dist, pos = dist[inside], pos[inside]
-        ids = self._ids.view()[pos].tolist()
-        stamps = self._stamps.view()[pos].tolist()
-        poses = self._poses.view()[pos]
+        ids = self._rows.ids[pos].tolist()
+        stamps = self._rows.stamps[pos].tolist()
+        poses = self._rows.poses[pos]
         codes = self._source_codes.view()[pos].tolist()
         out = []
         for rank, (i, d, s, p, c) in enumerate(zip(ids, dist.tolist(), stamps, poses, codes, strict=True)):
@@ -359,9 +299,9 @@ class DescriptorMap:
         }
         arrays = {
             "descriptors": self._xb(),
-            "ids": self._ids.view(),
-            "stamps": self._stamps.view(),
-            "poses": self._poses.view(),
+            "ids": self._rows.ids,
+            "stamps": self._rows.stamps,
+            "poses": self._rows.poses,
             "source_codes": self._source_codes.view(),
             **self.clouds.to_arrays(),
         }
@@ -394,15 +334,10 @@ class DescriptorMap:
         out = cls(config)
         if len(x):
             out._index.add(x)
-        out._ids.extend(ids)
-        out._stamps.extend(stamps)
-        out._poses.extend(poses)
+        out._rows.append(ids, stamps, poses)
         out._source_codes.extend(codes)
         out._source_names = list(header["sources"])
         out._source_lookup = {name: i for i, name in enumerate(out._source_names)}
-        out._next_id = int(ids.max()) + 1 if len(ids) else 0
-        out._ids_increasing = bool(np.all(np.diff(ids) > 0))
-        out._stamps_sorted = bool(np.all(np.diff(stamps) >= 0))
         if all(key in data for key in _CLOUD_KEYS):
             try:
                 out.clouds = CloudStore.from_arrays(data, where=f"map file {where}")
@@ -433,36 +368,6 @@ def _exact(q: np.ndarray, xb: np.ndarray, k: int, rows: np.ndarray | None) -> tu
         dist = np.pad(dist, ((0, 0), (0, k - kk)), constant_values=np.inf)
         pos = np.pad(pos, ((0, 0), (0, k - kk)), constant_values=-1)
     return dist, pos
-
-
-def _check_stamps(stamps: float | ArrayLike, n: int) -> np.ndarray:
-    arr = np.asarray(stamps)
-    if arr.ndim == 0 and n == 1:
-        arr = arr.reshape(1)
-    if arr.shape != (n,):
-        raise MapError(f"stamps of shape {tuple(np.shape(arr))} do not fit {n} descriptors; expected ({n},)")
-    if arr.dtype.kind not in "fiu":
-        raise MapError(f"stamps have dtype {arr.dtype}; expected float seconds")
-    arr = arr.astype(np.float64)
-    if not np.isfinite(arr).all():
-        raise MapError(f"stamps {arr[~np.isfinite(arr)][:5].tolist()} are not finite; expected finite seconds")
-    return arr
-
-
-def _check_poses(poses: ArrayLike | None, n: int) -> np.ndarray:
-    if poses is None:
-        return np.full((n, 3), np.nan)
-    try:
-        arr = np.asarray(poses, dtype=np.float64)
-    except (TypeError, ValueError) as err:
-        raise MapError(f"poses cannot be read as (N, 3) floats: {err}") from err
-    if arr.shape == (3,) and n == 1:
-        arr = arr.reshape(1, 3)
-    if arr.shape != (n, 3):
-        raise MapError(f"poses of shape {arr.shape} do not fit {n} descriptors; expected ({n}, 3) x, y, z")
-    if np.isinf(arr).any():
-        raise MapError("poses contain inf; expected finite x, y, z or NaN for unknown")
-    return arr
 
 
 def _check_sources(sources: str | Sequence[str] | None, n: int) -> list[str]:

@@ -42,3 +42,17 @@ def median_seconds(fn: Callable[[], object], *, repeats: int = 5, warmup: int = 
         fn()
         times.append(time.perf_counter() - start)
     return statistics.median(times)
+
+
+def memory_mb(pid: int | str = "self", *, field: str = "VmRSS") -> float:
+    """A process's memory from /proc/PID/status in MiB: ``VmRSS`` (resident now) or ``VmHWM`` (peak resident).
+
+    NaN where /proc has no such line (not Linux)."""
+    try:
+        lines = Path(f"/proc/{pid}/status").read_text().splitlines()
+    except OSError:
+        return float("nan")
+    for line in lines:
+        if line.startswith(f"{field}:"):
+            return int(line.split()[1]) / 1024.0
+    return float("nan")

@@ -28,17 +28,18 @@ from lcpr_core.detector import DetectorConfig, Frame, LoopDetector
 from lcpr_core.preprocess.camera import CameraInput
 from ros_common.diagnostics import DiagnosticsBuilder, Health
 from ros_common.errors import ConfigError, InputRejected
+from ros_common.inputs import offer_odometry
 from ros_common.mapstore import answer_save_request, save_under_lock
 from ros_common.poses import NoPoses, OdometryBuffer, PoseSource
-from ros_common.process import finish_and_save, run_node
+from ros_common.process import finish_and_save, node_parser, run_node
 from ros_common.qos import CANDIDATE_QOS, QOS_ADAPTED, SensorSubscription
 from ros_common.ros_params import RuntimeParameters, declare
 from ros_common.stamps import NS_PER_S, stamp_ns
-from ros_common.stats import Counts, RateMeter, WarnOnce, Window
+from ros_common.stats import Counts, NodeStats, Window
 from ros_common.worker import Worker
 
 from .config import NodeConfig
-from .inputs import CLOUD_NAN, camera_input, cloud_points, compressed_payload, odometry_pose, raw_payload
+from .inputs import CLOUD_NAN, camera_input, cloud_points, compressed_payload, raw_payload
 from .mapstore import load_prior_map, save_map
 from .markers import LoopMarkers, MarkerSink, NoMarkers
 from .outputs import candidates_msg, loop_closure_msg
@@ -59,7 +60,7 @@ SHUTDOWN_TIMEOUT = 60.0  # s the worker may take to finish its frames at shutdow
 
 
 
-class LcprNode(Node):
+class LcprNode(NodeStats, Node):
     """The ``lcpr`` node. Raises ConfigError / MapLoadError when it cannot start."""
 
     def __init__(self, *, parameter_overrides: list[Parameter] | None = None, **kwargs: Any) -> None:
@@ -68,14 +69,9 @@ class LcprNode(Node):
         self.settings: Settings = settings_from(declare(self, self._leaves))
         node_cfg, det_cfg = self.settings.node, self.settings.detector
         log = self.get_logger()
-        self.warnings = WarnOnce(log.warning)
-        self.drops, self.fixes, self.decisions = Counts(), Counts(), Counts()
-        self.rates = RateMeter()
-        self.latency = Window(node_cfg.diagnostics.window)
-        self.model_time = Window(node_cfg.diagnostics.window)
+        self.init_stats(log.warning, window=node_cfg.diagnostics.window)
         self.verify_time = Window(node_cfg.diagnostics.window)
         self.verdicts = Counts()
-        self.loops = 0
         self._closed = False
 
         prior = load_prior_map(node_cfg.map.path, det_cfg.map)
@@ -180,14 +176,9 @@ class LcprNode(Node):
     def _on_odom(self, buffer: OdometryBuffer, msg: Odometry) -> None:
         self.rates.tick(self.settings.node.odom_topic)
         try:
-            pose = odometry_pose(msg)
+            offer_odometry(buffer, msg)
         except InputRejected as err:
             self._reject(err)
-            return
-        ns = stamp_ns(msg.header)
-        refused = buffer.offer(ns, pose, msg.header.frame_id)
-        if refused is not None:
-            self._reject(InputRejected(f"odometry: {refused}", f"stamp {ns / NS_PER_S:.9f}"))
             return
         self._release()
 
@@ -311,13 +302,8 @@ class LcprNode(Node):
 
 # -- executable -------------------------------------------------------------------------------
 def _parser() -> argparse.ArgumentParser:
-    return argparse.ArgumentParser(
-        prog="lcpr_node",
-        description="LCPR loop-closure detection node (node name 'lcpr'). Set parameters with "
-                    "--ros-args -p name:=value or --ros-args --params-file config/lcpr.yaml.",
-        epilog="parameters:\n" + describe_all(),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    return node_parser(prog="lcpr_node", node_name="lcpr", summary="LCPR loop-closure detection node",
+                       params_file="config/lcpr.yaml", parameters=describe_all())
 
 
 def main(args: Sequence[str] | None = None) -> int:

@@ -14,6 +14,8 @@ from msg_tools.pointcloud import finite_mask, pointcloud2_to_array
 from msg_tools.transforms import odometry_to_pose
 
 from .errors import InputRejected
+from .poses import OdometryBuffer
+from .stamps import NS_PER_S, stamp_ns
 
 CLOUD_NO_XYZ = "cloud: no x/y/z fields"
 CLOUD_TRUNCATED = "cloud: truncated data"
@@ -56,3 +58,12 @@ def odometry_pose(msg: Any) -> np.ndarray:
     if not np.isfinite(pose).all():
         raise InputRejected(ODOM_BAD, f"the pose has non-finite values: {pose[:3, 3].tolist()}")
     return pose
+
+
+def offer_odometry(buffer: OdometryBuffer, msg: Any) -> None:
+    """Check an Odometry message and add its pose to ``buffer``; InputRejected when either refuses it."""
+    pose = odometry_pose(msg)
+    ns = stamp_ns(msg.header)
+    refused = buffer.offer(ns, pose, msg.header.frame_id)
+    if refused is not None:
+        raise InputRejected(f"odometry: {refused}", f"stamp {ns / NS_PER_S:.9f}")

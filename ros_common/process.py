@@ -61,6 +61,18 @@ def spin_until(node: Node, stop: threading.Event, *, period: float = 0.1) -> Non
         executor.shutdown()
 
 
+def node_parser(*, prog: str, node_name: str, summary: str, params_file: str,
+                parameters: str) -> argparse.ArgumentParser:
+    """The ``--help`` of a node executable: what it does, how to set parameters, and every parameter."""
+    return argparse.ArgumentParser(
+        prog=prog,
+        description=f"{summary} (node name {node_name!r}). Set parameters with --ros-args -p name:=value or "
+                    f"--ros-args --params-file {params_file}.",
+        epilog="parameters:\n" + parameters,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+
+
 def run_node(
     make_node: Callable[[], Any],
     *,

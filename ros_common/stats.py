@@ -105,3 +105,16 @@ class WarnOnce:
     def causes(self) -> list[str]:
         with self._lock:
             return sorted(self._seen)
+
+
+class NodeStats:
+    """The counters every node reports in /diagnostics: warnings (once per cause), dropped inputs,
+    repaired inputs (fixes), decisions, input rates, and latency / model-time windows."""
+
+    def init_stats(self, warn: Callable[[str], object], *, window: int) -> None:
+        self.warnings = WarnOnce(warn)
+        self.drops, self.fixes, self.decisions = Counts(), Counts(), Counts()
+        self.rates = RateMeter()
+        self.latency = Window(window)  # s from a frame's arrival to its result
+        self.model_time = Window(window)  # s of the worker's work per item
+        self.loops = 0  # loop closures published

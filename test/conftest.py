@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -16,6 +17,19 @@ REPO = Path(__file__).resolve().parents[1]
 def _graph_cache(tmp_path_factory: pytest.TempPathFactory) -> None:
     """Exported ONNX graphs of seeded test models go to a cache of this run, not the user's."""
     os.environ["XDG_CACHE_HOME"] = str(tmp_path_factory.mktemp("xdg_cache"))
+
+
+def reference_sets(method: str) -> list[Path]:
+    """The authors' parity vectors of ``method`` (lcpr | vseq2pc), one file per seed; [] without ../shared."""
+    found = shared_dir(marker="reference")
+    return sorted((found / "reference" / method).glob("expected_seed*.npz")) if found else []
+
+
+def reference_seed(ref_file: Path) -> int:
+    """The seed a parity-vector file was made with (``expected_seed<N>.npz``)."""
+    found = re.search(r"seed(\d+)", ref_file.stem)
+    assert found is not None, f"{ref_file.name} does not name its seed"
+    return int(found.group(1))
 
 
 @pytest.fixture(scope="session")

@@ -2,22 +2,16 @@
 from __future__ import annotations
 
 import json
-import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from conftest import shared_dir
+from conftest import reference_seed, reference_sets
 from lcpr_core import LCPR
 
 TOL = 1e-5
-
-
-def reference_sets() -> list[Path]:
-    found = shared_dir()
-    return sorted((found / "reference" / "lcpr").glob("expected_seed*.npz")) if found else []
 
 
 @pytest.fixture(scope="module")
@@ -31,11 +25,9 @@ def test_the_model_has_the_released_parameter_names_and_shapes(keys):
     assert {k: list(v.shape) for k, v in state.items()} == keys
 
 
-@pytest.mark.parametrize("ref_file", reference_sets(), ids=lambda p: p.stem)
+@pytest.mark.parametrize("ref_file", reference_sets("lcpr"), ids=lambda p: p.stem)
 def test_descriptors_match_the_released_code(ref_file: Path, keys, detweights):
-    found = re.search(r"seed(\d+)", ref_file.stem)
-    assert found is not None
-    seed = int(found.group(1))
+    seed = reference_seed(ref_file)
     expected = np.load(ref_file)
     batch = expected["descriptor"].shape[0]
     model = LCPR().eval()

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import json
-import re
 from pathlib import Path
 from typing import Any
 
@@ -10,15 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import shared_dir
+from conftest import reference_seed, reference_sets
 from lcpr_core import DescriptorModel, SequenceModel
 
 TOL = 1e-5
-
-
-def reference_sets() -> list[Path]:
-    found = shared_dir()
-    return sorted((found / "reference" / "vseq2pc").glob("expected_seed*.npz")) if found else []
 
 
 @pytest.fixture(scope="module")
@@ -32,11 +26,9 @@ def test_both_models_have_the_released_parameter_names_and_shapes(keys):
         assert {k: list(v.shape) for k, v in state.items()} == keys[group]
 
 
-@pytest.mark.parametrize("ref_file", reference_sets(), ids=lambda p: p.stem)
+@pytest.mark.parametrize("ref_file", reference_sets("vseq2pc"), ids=lambda p: p.stem)
 def test_features_descriptors_and_scores_match_the_released_code(ref_file: Path, keys, detweights):
-    found = re.search(r"seed(\d+)", ref_file.stem)
-    assert found is not None
-    seed = int(found.group(1))
+    seed = reference_seed(ref_file)
     ref = np.load(ref_file)
     seq, desc = SequenceModel().eval(), DescriptorModel().eval()
     seq.load_state_dict(detweights.det_state_dict(keys["sequence_model"], seed))

@@ -38,17 +38,18 @@ from lcpr_core.vseq2pc import Vseq2pcMap, Vseq2pcNet
 from lcpr_core.vseq2pc.detector import CameraFrame, LabelledScan, SequenceDetector
 from ros_common.diagnostics import DiagnosticsBuilder, Health
 from ros_common.errors import ConfigError, InputRejected
+from ros_common.inputs import offer_odometry
 from ros_common.mapstore import answer_save_request, save_under_lock
 from ros_common.poses import OdometryBuffer
-from ros_common.process import finish_and_save, run_node
+from ros_common.process import finish_and_save, node_parser, run_node
 from ros_common.qos import CANDIDATE_QOS, QOS_ADAPTED, SensorSubscription
 from ros_common.ros_params import declare
 from ros_common.stamps import NS_PER_S, StampOrder, stamp_ns
-from ros_common.stats import Counts, RateMeter, WarnOnce, Window
+from ros_common.stats import NodeStats
 from ros_common.worker import Worker
 
 from .config import NodeConfig
-from .inputs import CLOUD_NAN, SIZE_MISMATCH, depth_image, intrinsics, label_image, labelled_cloud, odometry_pose
+from .inputs import CLOUD_NAN, SIZE_MISMATCH, depth_image, intrinsics, label_image, labelled_cloud
 from .mapstore import open_map
 from .outputs import candidates_msg, loop_closure_msg
 from .params import all_leaves, describe_all, make_runtime, settings_from
@@ -87,7 +88,7 @@ def build_net(cfg: NodeConfig) -> Vseq2pcNet:
         raise ConfigError(f"cannot build the VSeq2PC networks from the model.* parameters: {err}") from err
 
 
-class Vseq2pcNode(Node):
+class Vseq2pcNode(NodeStats, Node):
     """The ``vseq2pc`` node. Raises ConfigError / MapLoadError when it cannot start."""
 
     def __init__(self, *, parameter_overrides: list[Parameter] | None = None, **kwargs: Any) -> None:
@@ -96,12 +97,7 @@ class Vseq2pcNode(Node):
         self.settings: NodeConfig = settings_from(declare(self, self._leaves))
         cfg = self.settings
         log = self.get_logger()
-        self.warnings = WarnOnce(log.warning)
-        self.drops, self.fixes, self.decisions = Counts(), Counts(), Counts()
-        self.rates = RateMeter()
-        self.latency = Window(cfg.diagnostics.window)
-        self.model_time = Window(cfg.diagnostics.window)
-        self.loops = 0
+        self.init_stats(log.warning, window=cfg.diagnostics.window)
         self.session_scans = 0
         self.queries = 0
         self._closed = False
@@ -165,14 +161,9 @@ class Vseq2pcNode(Node):
     def _on_odom(self, msg: Odometry) -> None:
         self.rates.tick(self.settings.odom_topic)
         try:
-            pose = odometry_pose(msg)
+            offer_odometry(self.poses, msg)
         except InputRejected as err:
             self._reject(err)
-            return
-        ns = stamp_ns(msg.header)
-        refused = self.poses.offer(ns, pose, msg.header.frame_id)
-        if refused is not None:
-            self._reject(InputRejected(f"odometry: {refused}", f"stamp {ns / NS_PER_S:.9f}"))
             return
         self._release()
 
@@ -367,13 +358,9 @@ class Vseq2pcNode(Node):
 
 # -- executable ---------------------------------------------------------------------------------
 def _parser() -> argparse.ArgumentParser:
-    return argparse.ArgumentParser(
-        prog="vseq2pc_node",
-        description="VSeq2PC camera-sequence to LiDAR-map loop closure (node name 'vseq2pc'). Set parameters "
-                    "with --ros-args -p name:=value or --ros-args --params-file config/vseq2pc.yaml.",
-        epilog="parameters:\n" + describe_all(),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    return node_parser(prog="vseq2pc_node", node_name="vseq2pc",
+                       summary="VSeq2PC camera-sequence to LiDAR-map loop closure",
+                       params_file="config/vseq2pc.yaml", parameters=describe_all())
 
 
 def main(args: Sequence[str] | None = None) -> int:

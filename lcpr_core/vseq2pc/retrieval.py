@@ -30,8 +30,8 @@ from numpy.typing import ArrayLike
 
 from ..errors import InputShapeError, InvalidValueError, MapError, MapSchemaError
 from ..exclusion import matchable, matchable_prefix
-from ..growable import GrowableArray
 from ..map_file import check_header_fields, read_map_file, write_map_file
+from ..map_rows import MapRows, RowAccess
 from ..models import DescriptorModel
 from ..preprocess.structure import structure_feature
 from .net import DESCRIPTOR_DIM, SLICES, Vseq2pcNet
@@ -101,7 +101,7 @@ def head_logits(head: DescriptorModel, query: torch.Tensor, slices: torch.Tensor
     return best.values, best.indices
 
 
-class ScanDatabase:
+class ScanDatabase(RowAccess):
     """Slice descriptors (N x 8 x 288) with id, stamp and pose per scan; rows count from 0 in insertion order.
 
     Not thread-safe: share one database between threads behind a lock.
@@ -110,30 +110,11 @@ class ScanDatabase:
     def __init__(self, *, weights_id: str = "") -> None:
         self.weights_id = weights_id
         self._index = faiss.IndexFlatL2(DESCRIPTOR_DIM)  # N * 8 slice rows: the only copy of the descriptors
-        self._ids = GrowableArray(np.int64)
-        self._stamps = GrowableArray(np.float64)
-        self._poses = GrowableArray(np.float64, (4, 4))
-        self._next_id = 0
-        self._stamps_sorted = True
+        self._rows = MapRows((4, 4), unit="scans")  # ids, stamps, poses (lcpr_core.map_rows)
 
-    def __len__(self) -> int:
-        return len(self._ids)
 
     def __repr__(self) -> str:
         return f"ScanDatabase({len(self)} scans x {SLICES} x {DESCRIPTOR_DIM}, weights {self.weights_id or '?'})"
-
-    @property
-    def ids(self) -> np.ndarray:
-        return self._ids.view()
-
-    @property
-    def stamps(self) -> np.ndarray:
-        return self._stamps.view()
-
-    @property
-    def poses(self) -> np.ndarray:
-        """(N, 4, 4) world_T_lidar; NaN where unknown."""
-        return self._poses.view()
 
     @property
     def descriptors(self) -> np.ndarray:
@@ -166,36 +147,11 @@ class ScanDatabase:
         if not np.isfinite(x).all():
             raise MapError("descriptors contain NaN or inf")
         n = len(x)
-        t = np.asarray(stamps, np.float64).reshape(-1)
-        if t.shape != (n,) or not np.isfinite(t).all():
-            raise MapError(f"stamps {np.asarray(stamps).shape} do not fit {n} scans; expected ({n},) finite seconds")
-        if poses is None:
-            p = np.full((n, 4, 4), np.nan)
-        else:
-            p = np.asarray(poses, np.float64).reshape(-1, 4, 4)
-            if p.shape != (n, 4, 4):
-                raise MapError(f"poses of shape {np.shape(poses)} do not fit {n} scans; "
-                               f"expected (4, 4) or ({n}, 4, 4)")
-        if ids is None:
-            new_ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
-        else:
-            new_ids = np.asarray(ids).reshape(-1)
-            if new_ids.dtype.kind not in "iu" or new_ids.shape != (n,):
-                raise MapError(f"ids of shape {np.shape(ids)} dtype {new_ids.dtype}; expected {n} integers")
-            new_ids = new_ids.astype(np.int64)
-            fresh = n == 0 or new_ids.min() >= self._next_id  # above every id so far: no lookup needed
-            if (n and new_ids.min() < 0) or len(np.unique(new_ids)) != n or \
-                    (not fresh and np.isin(new_ids, self._ids.view()).any()):
-                raise MapError(f"ids {new_ids[:5].tolist()} are not {n} unique, unused, non-negative ids")
+        new_ids, t, p = self._rows.check(n, stamps=stamps, poses=poses, ids=ids)
         if n == 0:
             return new_ids
-        last = self._stamps.view()[-1] if len(self) else -math.inf
-        self._stamps_sorted = self._stamps_sorted and t[0] >= last and bool(np.all(np.diff(t) >= 0))
         self._index.add(x.reshape(n * SLICES, DESCRIPTOR_DIM))
-        self._ids.extend(new_ids)
-        self._stamps.extend(t)
-        self._poses.extend(p)
-        self._next_id = max(self._next_id, int(new_ids.max()) + 1)
+        self._rows.append(new_ids, t, p)
         return new_ids.copy()
 
     # ------------------------------------------------------------------ search
@@ -208,8 +164,8 @@ class ScanDatabase:
             end = min(end, max(0, int(row) - config.exclude_recent_rows))
         if stamp is None or config.exclude_recent_s is None:
             return slice(0, end)
-        stamps = self._stamps.view()[:end]
-        if self._stamps_sorted:
+        stamps = self._rows.stamps[:end]
+        if self._rows.stamps_sorted:
             return slice(0, matchable_prefix(stamps, stamp, config.exclude_recent_s))
         return np.flatnonzero(matchable(stamps, stamp, config.exclude_recent_s))
 
@@ -292,7 +248,7 @@ class ScanDatabase:
         kk = min(k, len(rows))
         top = np.argpartition(-logits, kk - 1)[:kk] if kk < len(rows) else np.arange(len(rows))
         top = top[np.lexsort((rows[top], -logits[top]))]
-        ids, stamps, poses = self._ids.view(), self._stamps.view(), self._poses.view()
+        ids, stamps, poses = self._rows.ids, self._rows.stamps, self._rows.poses
         out = []
         for rank, j in enumerate(top.tolist()):
             r = int(rows[j])
@@ -307,8 +263,8 @@ class ScanDatabase:
         """Write the database to one .npz (no pickle), atomically: on failure the old file stays."""
         header = {"format": _FORMAT, "schema_version": DATABASE_SCHEMA_VERSION, "slices": SLICES,
                   "dim": DESCRIPTOR_DIM, "count": len(self), "weights_id": self.weights_id}
-        arrays = {"descriptors": self._view(), "ids": self._ids.view(), "stamps": self._stamps.view(),
-                  "poses": self._poses.view()}
+        arrays = {"descriptors": self._view(), "ids": self._rows.ids, "stamps": self._rows.stamps,
+                  "poses": self._rows.poses}
         write_map_file(path, header, arrays, kind="scan database")
 
     @classmethod
