@@ -72,7 +72,7 @@ setup(
             "vseq2pc_node = vseq2pc_ros.node:main",
             "lcpr_train = lcpr_core.training.cli:main",
             "vseq2pc_cache = lcpr_core.vseq2pc.dataset:main",
-            "vseq2pc_train = lcpr_core.vseq2pc.train:main",
+            "vseq2pc_train = lcpr_core.vseq2pc.training.cli:main",
             "vseq2pc_eval = lcpr_core.vseq2pc.evaluate:main",
             "msg_tools_nuscenes2bag = msg_tools.convert.nuscenes:main",
             "msg_tools_kitti2bag = msg_tools.convert.kitti:main",

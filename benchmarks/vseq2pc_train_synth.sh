@@ -27,7 +27,7 @@ for drive in "train_seed5 5 1000" "train_seed11 11 1000" "train_seed13 13 1000" 
 done
 
 # 2. stage 1 (reconstruction, 1 epoch) + stage 2 (joint, 12 epochs of 3520 queries, in-batch pairs)
-$PY -m lcpr_core.vseq2pc.train --cache "$OUT"/train_seed{5,11,13,17,19,29}.npz --val-cache "$OUT/val_seed23.npz" \
+$PY -m lcpr_core.vseq2pc.training.cli --cache "$OUT"/train_seed{5,11,13,17,19,29}.npz --val-cache "$OUT/val_seed23.npz" \
     --out "$OUT/run" --pretrain-epochs 1 --epochs 12 --batch 32 --queries-per-epoch 3520 --seq-base-lr 8e-3 \
     --seq-warmup-epochs 0.5 --negatives 1 --no-progress
 

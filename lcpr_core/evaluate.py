@@ -39,7 +39,7 @@ from msg_tools.transforms import BASE_FRAME
 
 from .describer import Describer, ModelConfig
 from .detector import Candidate, DetectorConfig, Frame, LoopDetector, MatchConfig
-from .errors import LcprError
+from .errors import InvalidValueError, LcprError
 from .evaluation import (
     EvaluationReport,
     MethodRun,
@@ -90,11 +90,11 @@ class EvalOptions:
         for name in ("exclude_recent_s", "max_distance", "sc_max_distance", "slop", "limit", "warmup", "drift_seed"):
             value = getattr(self, name)
             if value is not None and not value >= 0:
-                raise ValueError(f"{name}={value!r}; it must be >= 0")
+                raise InvalidValueError(f"{name}={value!r}; it must be >= 0")
         if not self.radius > 0:
-            raise ValueError(f"radius={self.radius!r}; it must be a positive distance in metres")
+            raise InvalidValueError(f"radius={self.radius!r}; it must be a positive distance in metres")
         if self.model.num_cameras != len(self.topics.cameras):
-            raise ValueError(f"model.num_cameras={self.model.num_cameras} but the topics name "
+            raise InvalidValueError(f"model.num_cameras={self.model.num_cameras} but the topics name "
                              f"{len(self.topics.cameras)} cameras; they must agree")
 
 

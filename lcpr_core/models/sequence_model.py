@@ -75,7 +75,7 @@ class SequenceModel(nn.Module):
     ``straight_through_clamp`` (a training option, not the release's): in training mode the
     output is still clamped to [0, 1], but gradients pass the clamp as if it were not there,
     so cells pushed out of [0, 1] can come back (with the plain clamp they never receive a
-    gradient again; see lcpr_core.vseq2pc.train). Values, and so parity, are unchanged.
+    gradient again; see lcpr_core.vseq2pc.training). Values, and so parity, are unchanged.
     """
 
     def __init__(

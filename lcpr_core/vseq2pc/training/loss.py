@@ -1,0 +1,47 @@
+"""The models' pair scores and the joint loss (BCE on the max-slice logit + contrastive on its distance)."""
+from __future__ import annotations
+
+import logging
+
+import torch
+import torch.nn.functional as F
+
+from ...models import DescriptorModel, SequenceModel
+from ..net import scan_slice_descriptors
+from ..retrieval import head_logits
+
+log = logging.getLogger("lcpr_core.vseq2pc.training")
+
+# ---------------------------------------------------------------------- model pieces
+def pair_logits(seq: SequenceModel, desc: DescriptorModel, frames: torch.Tensor, lidar: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+    """B x 4 x 12 x 90 sequences and B x S x 12 x 360 scans (S per sequence) -> max-slice logits (B, S) and
+    the squared descriptor distance to the best slice (B, S)."""
+    b, s = lidar.shape[:2]
+    d_seq = desc.sequence_descriptor(seq(frames), frames[:, 0])  # B x 288
+    d_scan = scan_slice_descriptors(desc, lidar.reshape(b * s, *lidar.shape[2:])).view(b, s, 8, -1)
+    return _best_slice(desc, d_seq, d_scan)
+
+
+def cross_logits(seq: SequenceModel, desc: DescriptorModel, frames: torch.Tensor, lidar: torch.Tensor
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """B sequences against every one of M scans (M x 12 x 360) -> logits and squared distances (B, M)."""
+    d_seq = desc.sequence_descriptor(seq(frames), frames[:, 0])  # B x 288
+    d_scan = scan_slice_descriptors(desc, lidar)  # M x 8 x 288
+    return _best_slice(desc, d_seq, d_scan.expand(len(d_seq), -1, -1, -1))
+
+
+def _best_slice(desc: DescriptorModel, d_seq: torch.Tensor, d_scan: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    values, indices = head_logits(desc, d_seq[:, None, None, :], d_scan)  # B x S
+    chosen = torch.gather(d_scan, 2, indices[..., None, None].expand(-1, -1, 1, d_scan.shape[-1]))[:, :, 0]
+    sq = ((d_seq[:, None, :] - chosen) ** 2).sum(dim=-1)
+    return values, sq
+
+
+def place_loss(logits: torch.Tensor, sq_dist: torch.Tensor, labels: torch.Tensor, *, margin: float,
+               weights: torch.Tensor | None = None) -> torch.Tensor:
+    """BCE-with-logits + y d^2 + (1 - y) relu(margin - d)^2, averaged (weighted when ``weights`` sum to 1)."""
+    d = torch.sqrt(sq_dist + 1e-12)
+    bce = F.binary_cross_entropy_with_logits(logits, labels, reduction="none")
+    per_pair = bce + labels * sq_dist + (1 - labels) * F.relu(margin - d) ** 2
+    return per_pair.mean() if weights is None else (per_pair * weights).sum()
