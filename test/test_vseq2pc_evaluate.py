@@ -133,6 +133,16 @@ def test_single_frame_mode_and_the_feature_match_reference_find_every_loop_too(o
     assert reference.recall_at[1] == 1.0 and reference.max_f1 == pytest.approx(1.0)
 
 
+def test_a_shorter_sequence_repeats_its_last_frame_and_one_frame_is_the_single_frame_mode(oracle: Vseq2pcNet) -> None:
+    cache = position_cache(square_drive())
+    one = evaluate(oracle, cache, name="1", config=EvalConfig(sequence_length=1))
+    single = evaluate(oracle, cache, name="single", config=EvalConfig(single_frame=True))
+    assert one.recall_at == single.recall_at and one.max_f1 == single.max_f1
+    assert evaluate(oracle, cache, name="2", config=EvalConfig(sequence_length=2)).recall_at[1] == 1.0
+    with pytest.raises(ValueError, match="sequence_length=5; expected 1 to 4 frames"):
+        EvalConfig(sequence_length=5)
+
+
 def test_the_command_compares_untrained_with_given_weights_and_writes_json_and_png(tmp_path: Path,
                                                                                     capsys) -> None:
     from lcpr_core.vseq2pc.checkpoint import save_descriptor_weights, save_sequence_weights

@@ -10,7 +10,8 @@
 
 Methods: the trained weights, a seeded untrained initialisation (``--untrained``),
 with ``--single-frame`` each network fed the query frame four times instead of a
-sequence, and with ``--feature-match`` a reference without a network (the query frame's
+sequence, with ``--sequence-lengths L ...`` the first L frames of each sequence (the last
+repeated), and with ``--feature-match`` a reference without a network (the query frame's
 camera feature against each scan's 8 windows, mean absolute difference). Writes
 ``eval.json`` and ``pr.png``; prints a table.
 """
@@ -49,12 +50,15 @@ class EvalConfig:
     loop_radius: float = 5.0
     n_values: tuple[int, ...] = (1, 5, 10)
     seed: int = 0
-    single_frame: bool = False  # feed the query frame 4 times (no sequence)
+    single_frame: bool = False  # feed the query frame 4 times (no sequence); the same as sequence_length=1
+    sequence_length: int = 4  # sequence frames used (query, +5 m, +10 m, +15 m); the last one repeats to fill 4
 
     def __post_init__(self) -> None:
         if self.min_frame_gap < 0 or self.negatives_per_positive < 1 or not self.loop_radius > 0:
             raise InvalidValueError(f"min_frame_gap={self.min_frame_gap} (>= 0), negatives_per_positive="
                                     f"{self.negatives_per_positive} (>= 1), loop_radius={self.loop_radius} (> 0)")
+        if not 1 <= self.sequence_length <= 4:
+            raise InvalidValueError(f"sequence_length={self.sequence_length}; expected 1 to 4 frames")
         if not self.n_values or min(self.n_values) < 1:
             raise InvalidValueError(f"n_values={self.n_values}; expected positive integers")
 
@@ -97,7 +101,8 @@ def evaluate(net: Vseq2pcNet, cache: FeatureCache, *, name: str, config: EvalCon
     start = time.perf_counter()
     queries = _queries(cache)
     members = cache.sequences()[queries]
-    d_seq = net.query_descriptors(cache.camera[members[:, [0, 0, 0, 0]] if config.single_frame else members])
+    length = 1 if config.single_frame else config.sequence_length
+    d_seq = net.query_descriptors(cache.camera[members[:, [min(i, length - 1) for i in range(4)]]])
     slices = net.slice_descriptors(cache.lidar)  # (N, 8, 288)
     row_of = np.full(len(cache), -1, np.int64)
     row_of[queries] = np.arange(len(queries))
@@ -248,6 +253,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--name", default="trained", help="name of the weights' column")
     p.add_argument("--untrained", action="store_true", help="also evaluate a seeded untrained initialisation")
     p.add_argument("--single-frame", action="store_true", help="also feed each network the query frame 4 times")
+    p.add_argument("--sequence-lengths", type=int, nargs="+", default=[], metavar="L",
+                   help="also evaluate each network on the first L frames of each sequence (1..3), the last repeated")
     p.add_argument("--feature-match", action="store_true",
                    help="also a reference without a network: camera feature vs scan windows, mean |difference|")
     p.add_argument("--init-seed", type=int, default=0, help="seed of the untrained initialisation")
@@ -287,6 +294,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             if args.single_frame:
                 single = EvalConfig(**{**asdict(config), "single_frame": True})
                 results.append(evaluate(net, cache, name=f"{name}, single frame", config=single))
+            for length in args.sequence_lengths:
+                shorter = EvalConfig(**{**asdict(config), "sequence_length": length})
+                results.append(evaluate(net, cache, name=f"{name}, {length} frame(s)", config=shorter))
     except (ValueError, OSError) as err:
         print(f"vseq2pc_eval: error: {err}", file=sys.stderr)
         return 2

@@ -1,0 +1,211 @@
+"""LCPR's robustness studies, reproduced on held-out synthetic cities (the paper's Table III, Fig. 5, Fig. 6).
+
+The database keyframes are described as recorded; only the query keyframes (the paper's
+database/query split, positives within 9 m) are perturbed, one condition at a time:
+
+- yaw: the vehicle turned by k camera slots: the six images rolled by k slots together with the
+  cloud rotated by the same angle (nuScenes camera yaws: 55, 110, 180, 250, 305, 360 deg);
+- occlusion: each camera blacked out in turn (a zero slot, as a camera that stopped sending), and
+  a quarter of the LiDAR range image's columns (a 90 deg sector, the full height) set to no return;
+- lighting: every query image's brightness scaled (PIL ImageEnhance.Brightness).
+
+Recall@1 per condition and city goes to ``OUT/robustness.json`` and ``OUT/robustness.png``. No
+threshold is chosen here (Recall@1 has none), so any city may serve; the default cities are
+neither the bundled weights' training cities (seeds 1, 2) nor their validation city (seed 3).
+
+    python benchmarks/lcpr_robustness.py [--cities grid:7 grid:9 kitti00:21] [--frames 300] [--out DIR]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from PIL import ImageEnhance
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from citysim import SynthConfig, SyntheticDrive  # noqa: E402
+from lcpr_core.atomic import atomic_path, save_figure  # noqa: E402
+from lcpr_core.describer import Describer, ModelConfig  # noqa: E402
+from lcpr_core.evaluation import database_query_protocol, ground_truth  # noqa: E402
+from lcpr_core.preprocess.camera import CameraInput, to_pil  # noqa: E402
+from lcpr_core.preprocess.range_image import rotate_z  # noqa: E402
+from lcpr_core.pretrained import default_weights  # noqa: E402
+from lcpr_core.timing import cpu_model  # noqa: E402
+from msg_tools.frames import NUSCENES_CAMERAS  # noqa: E402
+from msg_tools.progress import progress_iter  # noqa: E402
+
+#: The vehicle turned left by k camera slots (k = 1..6): the angle between the slots' cameras (nuScenes rig).
+YAWS_DEG = (55.0, 110.0, 180.0, 250.0, 305.0, 360.0)
+BRIGHTNESS = (0.3, 0.5, 0.7, 1.0, 1.3, 1.6)
+NO_RETURN = -1.0  # what range_image writes where no point falls
+
+
+@dataclass
+class Keyframe:
+    stamp: float
+    images: list[CameraInput | None]
+    points: np.ndarray  # N x 3, LiDAR frame
+    position: np.ndarray  # (3,)
+
+
+Perturb = Callable[[Describer, Keyframe], np.ndarray]
+
+
+def render(route: str, seed: int, frames: int, image_size: tuple[int, int]) -> list[Keyframe]:
+    drive = SyntheticDrive(SynthConfig(rig="nuscenes", route=route, frames=frames, seed=seed, image_size=image_size,
+                                       camera_drop=0.0))
+    out = []
+    for i in progress_iter(range(len(drive)), total=len(drive), unit="frame", desc=f"render {route}:{seed}"):
+        frame = drive.frame(i)
+        images: list[CameraInput | None] = [None if c is None else (c.jpeg if c.jpeg is not None else c.rgb)
+                                           for c in frame.cameras]
+        assert frame.pose is not None
+        out.append(Keyframe(frame.stamp, images, frame.xyz, frame.pose[:3, 3].copy()))
+    return out
+
+
+def turned(k: int) -> Perturb:
+    """The vehicle turned left by k slots: slot j now shows what slot j - k showed; the cloud turns the other way."""
+    def describe(describer: Describer, kf: Keyframe) -> np.ndarray:
+        shift = k % len(kf.images)
+        rolled = kf.images[-shift:] + kf.images[:-shift] if shift else list(kf.images)
+        return describer.describe(rolled, rotate_z(kf.points, -YAWS_DEG[k - 1]))
+    return describe
+
+
+def camera_out(index: int) -> Perturb:
+    def describe(describer: Describer, kf: Keyframe) -> np.ndarray:
+        images = list(kf.images)
+        images[index] = None
+        return describer.describe(images, kf.points)
+    return describe
+
+
+def lidar_quarter_out(describer: Describer, kf: Keyframe) -> np.ndarray:
+    cams, ranges = describer.inputs(kf.images, kf.points)  # 1 x 1 x h x w
+    width = ranges.shape[-1]
+    ranges[..., : width // 4] = NO_RETURN
+    return describer.describe_tensors(cams, ranges)[0]
+
+
+def brightness(factor: float) -> Perturb:
+    def describe(describer: Describer, kf: Keyframe) -> np.ndarray:
+        images: list[CameraInput | None] = [
+            None if im is None else ImageEnhance.Brightness(to_pil(im).convert("RGB")).enhance(factor)
+            for im in kf.images]
+        return describer.describe(images, kf.points)
+    return describe
+
+
+def conditions() -> dict[str, dict[str, Perturb | None]]:
+    """Study -> condition -> how a query is described (None: as recorded)."""
+    return {
+        "yaw": {f"{yaw:g}": (None if k == len(YAWS_DEG) else turned(k)) for k, yaw in enumerate(YAWS_DEG, start=1)},
+        "occlusion": {"none": None, **{f"{name} out": camera_out(i) for i, name in enumerate(NUSCENES_CAMERAS)},
+                      "LiDAR 1/4 out": lidar_quarter_out},
+        "lighting": {f"{f:g}": (None if f == 1.0 else brightness(f)) for f in BRIGHTNESS},
+    }
+
+
+def study_city(describer: Describer, keyframes: list[Keyframe], *, name: str) -> dict[str, dict[str, float]]:
+    stamps = np.array([kf.stamp for kf in keyframes])
+    gt = ground_truth(stamps, np.stack([kf.position for kf in keyframes]), radius=9.0, exclude_recent_s=30.0)
+    base = np.stack([describer.describe(kf.images, kf.points)
+                     for kf in progress_iter(keyframes, total=len(keyframes), unit="kf", desc=f"{name}: describe")])
+    queries = gt.queries
+    print(f"{name}: {len(keyframes)} keyframes, {len(gt.database)} database, {len(queries)} queries", flush=True)
+    out: dict[str, dict[str, float]] = {}
+    for study, conds in conditions().items():
+        out[study] = {}
+        for label, perturb in conds.items():
+            desc = base.copy()
+            if perturb is not None:
+                for q in progress_iter(queries.tolist(), total=len(queries), unit="q", desc=f"{name}: {label}"):
+                    desc[q] = perturb(describer, keyframes[q])
+            result = database_query_protocol(gt, descriptors=desc)
+            assert result is not None, f"{name} has no revisit"
+            out[study][label] = float(result.recall_at[1])
+            print(f"  {study:9s} {label:>20s}: Recall@1 {out[study][label]:.3f}", flush=True)
+    return out
+
+
+def plot(results: dict[str, dict[str, dict[str, float]]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4.5))
+    for city, studies in results.items():
+        yaw = studies["yaw"]
+        axes[0].plot([float(k) for k in yaw], list(yaw.values()), marker="o", label=city)
+        light = studies["lighting"]
+        axes[2].plot([float(k) for k in light], list(light.values()), marker="o", label=city)
+    occl_labels = list(next(iter(results.values()))["occlusion"])
+    width = 0.8 / max(len(results), 1)
+    for j, (city, studies) in enumerate(results.items()):
+        axes[1].bar(np.arange(len(occl_labels)) + j * width, [studies["occlusion"][k] for k in occl_labels],
+                    width=width, label=city)
+    axes[1].set_xticks(np.arange(len(occl_labels)) + width * (len(results) - 1) / 2)
+    axes[1].set_xticklabels([k.replace(" out", "").replace("CAM_", "") for k in occl_labels], rotation=45, ha="right",
+                            fontsize=8)
+    for ax, title, xlabel in zip(axes, ("yaw of the query (Fig. 6)", "occlusion (Table III)", "brightness (Fig. 5)"),
+                                 ("vehicle turned (deg)", "", "brightness factor"), strict=True):
+        ax.set_title(title)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("Recall@1")
+        ax.set_ylim(0, 1)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle("LCPR (bundled narrow weights), held-out synthetic cities: only the queries perturbed")
+    save_figure(fig, path, dpi=100)
+    plt.close(fig)
+
+
+def parse_city(text: str) -> tuple[str, int]:
+    route, _, seed = text.partition(":")
+    if route not in ("grid", "kitti00") or not seed.isdigit():
+        raise argparse.ArgumentTypeError(f"city {text!r}; expected ROUTE:SEED with ROUTE grid or kitti00, e.g. grid:7")
+    return route, int(seed)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--cities", nargs="+", type=parse_city, default=[("grid", 7), ("grid", 9), ("kitti00", 21)])
+    p.add_argument("--frames", type=int, default=300, help="keyframes per city (default 300)")
+    p.add_argument("--image-size", type=int, nargs=2, default=(400, 225), metavar=("W", "H"))
+    p.add_argument("--weights", default="", help="LCPR weights (default: the bundled narrow weights)")
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--out", type=Path, default=REPO / "out" / "robustness")
+    args = p.parse_args(argv)
+    weights = args.weights or default_weights()
+    if not weights:
+        p.error("no --weights and no bundled weights in this checkout")
+    describer = Describer(ModelConfig(weights=str(weights), lidar="nuscenes_lidar_top", precision="fp32",
+                                      threads=args.threads))
+    start = time.perf_counter()
+    results = {}
+    for route, seed in args.cities:
+        name = f"{route}:{seed}"
+        results[name] = study_city(describer, render(route, seed, args.frames, tuple(args.image_size)), name=name)
+    args.out.mkdir(parents=True, exist_ok=True)
+    report = {"weights": str(weights), "cpu": cpu_model(), "python": platform.python_version(),
+              "frames": args.frames, "seconds": time.perf_counter() - start, "recall_at_1": results}
+    with atomic_path(args.out / "robustness.json") as tmp:
+        tmp.write_text(json.dumps(report, indent=2) + "\n")
+    plot(results, args.out / "robustness.png")
+    print(f"written: {args.out / 'robustness.json'}, {args.out / 'robustness.png'} ({report['seconds']:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
