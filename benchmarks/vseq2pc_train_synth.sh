@@ -33,7 +33,7 @@ $PY -m lcpr_core.vseq2pc.training.cli --cache "$OUT"/train_seed{5,11,13,17,19,29
 
 # 3. the paper's evaluation on the held-out drive
 $PY -m lcpr_core.vseq2pc.evaluate --cache "$OUT/heldout_seed7.npz" --weights-dir "$OUT/run" --which best \
-    --name "trained" --untrained --single-frame --feature-match --out "$OUT/eval"
+    --name "trained" --untrained --single-frame --sequence-lengths 2 3 --feature-match --out "$OUT/eval"
 
 if [ "${2:-}" = "--bundle" ]; then
   cp "$OUT/run/best_sequence_model.pth" weights/vseq2pc_synth_sequence.pth

@@ -23,6 +23,7 @@ from pathlib import Path
 
 from ..errors import InvalidValueError, LcprError
 from ..preprocess import PRESETS as LIDAR_PRESETS
+from .augment import AugmentConfig
 from .cache import build_cache
 from .config import NEGATIVE_RULES, PRESETS, MiningConfig, OptimConfig, SplitConfig, TrainConfig, input_preset
 from .dataset import TrainingData
@@ -76,6 +77,15 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--device", default="cpu", help="torch device, e.g. cuda:0 (default cpu)")
     g.add_argument("--eval-batch", type=int, default=16, help="samples per forward when describing (default 16)")
     g.add_argument("--quiet", action="store_true", help="no progress bars")
+    g = p.add_argument_group("augmentation of the training inputs (off by default)")
+    g.add_argument("--augment-yaw", type=float, default=0.0,
+                   help="chance a sample is turned by whole camera slots, cloud with it (default 0)")
+    g.add_argument("--augment-lighting", type=float, default=0.0,
+                   help="chance its brightness is scaled by a factor in --brightness (default 0)")
+    g.add_argument("--brightness", type=float, nargs=2, default=(0.3, 1.6), metavar=("LOW", "HIGH"),
+                   help="range of the brightness factor (default 0.3 1.6)")
+    g.add_argument("--augment-camera-drop", type=float, default=0.0,
+                   help="chance one of its cameras is blacked out (default 0)")
     return p
 
 
@@ -94,6 +104,8 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
                           queries_per_batch=args.batch, queries_per_epoch=args.queries_per_epoch),
         seed=args.seed, imagenet=args.imagenet, threads=args.threads, eval_batch=args.eval_batch,
         device=args.device,
+        augment=AugmentConfig(yaw=args.augment_yaw, lighting=args.augment_lighting,
+                              brightness=tuple(args.brightness), camera_drop=args.augment_camera_drop),
     )
 
 

@@ -1,4 +1,4 @@
-"""Dataclass configurations of LCPR training: inputs, split, mining, optimisation."""
+"""Dataclass configurations of LCPR training: inputs, split, mining, optimisation, augmentation."""
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
@@ -6,6 +6,7 @@ from typing import Any
 
 from ..errors import InvalidValueError
 from ..preprocess import lidar_preset
+from .augment import AugmentConfig
 
 NEGATIVE_RULES = ("violating", "absolute")
 
@@ -137,6 +138,7 @@ class TrainConfig:
     threads: int = 2  # torch intra-op threads
     eval_batch: int = 16  # samples per forward when caching descriptors
     device: str = "cpu"  # torch device, e.g. cuda:0 for the released preset
+    augment: AugmentConfig = field(default_factory=AugmentConfig)  # off by default
 
     def __post_init__(self) -> None:
         if self.threads < 1:

@@ -7,7 +7,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ..errors import InvalidValueError
 from ..preprocess import IMAGENET_MEAN, IMAGENET_STD
+from .augment import AugmentConfig, augment
 from .cache import SampleCache
 from .config import SplitConfig
 from .split import Split, split_samples
@@ -43,12 +45,18 @@ class TrainingData:
     def __len__(self) -> int:
         return len(self.cache)
 
-    def inputs(self, indices: Sequence[int] | np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
-        """Model inputs of the given samples, in the given order (repeats allowed)."""
+    def inputs(self, indices: Sequence[int] | np.ndarray, *, augmentation: AugmentConfig | None = None,
+               rng: np.random.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Model inputs of the given samples, in the given order (repeats allowed); with ``augmentation``
+        (and its ``rng``) each sample possibly turned, relit or missing a camera (:mod:`.augment`)."""
         idx = np.asarray(indices, np.int64)
         order = np.argsort(idx, kind="stable")  # sorted reads are kinder to the memory map
         back = np.empty_like(order)
         back[order] = np.arange(len(idx))
         s = idx[order]
         imgs, cams, rngs = self.cache.images[s][back], self.cache.cameras[s][back], self.cache.ranges[s][back]
+        if augmentation is not None and augmentation.active:
+            if rng is None:
+                raise InvalidValueError("augmentation needs an rng (a numpy Generator); got None")
+            imgs, cams, rngs = augment(imgs, cams, rngs, augmentation, rng)
         return to_model_inputs(imgs, cams, rngs)

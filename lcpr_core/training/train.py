@@ -78,6 +78,7 @@ class Trainer:
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=opt.lr, weight_decay=opt.weight_decay)
         self.scheduler = torch.optim.lr_scheduler.StepLR(self.optimizer, step_size=opt.step_epochs, gamma=opt.gamma)
         self._descriptors: np.ndarray | None = None
+        self._augment_rng = np.random.default_rng([self.config.seed, 2])  # training inputs only
         if len(self.data.split.train) == 0 or len(self.data.split.val) == 0:
             raise InvalidValueError(f"the split has {self.data.split.summary()}; training needs train and val queries "
                                     f"(record drives that revisit places, or change the split fractions)")
@@ -183,7 +184,7 @@ class Trainer:
         ids: list[int] = []
         for t in triplets:
             ids += [t.query, t.positive, *t.negatives]
-        images, ranges = self.data.inputs(ids)
+        images, ranges = self.data.inputs(ids, augmentation=self.config.augment, rng=self._augment_rng)
         desc = self.model(images.to(self.device), ranges.to(self.device))
         loss = batch_triplet_loss(desc, [len(t.negatives) for t in triplets], margin=self.config.mining.margin)
         self.optimizer.zero_grad(set_to_none=True)

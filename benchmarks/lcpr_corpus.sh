@@ -1,0 +1,37 @@
+#!/usr/bin/env bash
+# The LCPR training corpus: 12 synthetic training cities, 2 validation cities and the 3 test cities,
+# each a city of its own (distinct seeds), rendered as rosbag2 drives with the nuScenes-like rig.
+#   training:   grid routes (loops driven both ways) seeds 1 2 4 5 6 8 10 11 12 13, KITTI-00 route seeds 41 43
+#   validation: grid seed 3, KITTI-00 route seed 45       (epoch, operating threshold)
+#   test:       grid seeds 7 and 9, KITTI-00 route seed 21 (reported only; never trained or tuned on)
+# Lighting sessions (day/night), camera drops, sensor noise, lane changes and parked cars that differ
+# between visits come from citysim; every third training city has twice the night share and camera drops.
+# lcpr_train caches the preprocessed tensors once (OUT/cache), so an epoch costs model time only.
+#
+#   bash benchmarks/lcpr_corpus.sh [OUT] [FRAMES]     (default OUT=out/corpus, FRAMES=300 keyframes per city)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-.venv/bin/python}
+OUT=${1:-out/corpus}
+FRAMES=${2:-300}
+mkdir -p "$OUT"
+
+render() {  # NAME ROUTE SEED FRAMES [extra citysim options]
+  local name=$1 route=$2 seed=$3 frames=$4; shift 4
+  [ -d "$OUT/$name.bag" ] || $PY -m citysim.cli --route "$route" --seed "$seed" --frames "$frames" \
+      --image-size 400x225 --workers 2 --no-progress --out "$OUT/$name.bag" "$@"
+}
+i=0
+for s in 1 2 4 5 6 8 10 11 12 13; do
+  i=$((i + 1))
+  if [ $((i % 3)) -eq 0 ]; then render "train_grid_s$s" grid $s "$FRAMES" --night-fraction 0.5 --camera-drop 0.05
+  else render "train_grid_s$s" grid $s "$FRAMES"; fi
+done
+render train_k00_s41 kitti00 41 "$FRAMES"
+render train_k00_s43 kitti00 43 "$FRAMES" --night-fraction 0.5 --camera-drop 0.05
+render val_grid_s3 grid 3 "$FRAMES"
+render val_k00_s45 kitti00 45 900
+render test_grid_s7 grid 7 "$FRAMES"
+render test_grid_s9 grid 9 "$FRAMES"
+render test_k00_s21 kitti00 21 900
+ls -d "$OUT"/*.bag

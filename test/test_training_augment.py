@@ -1,0 +1,61 @@
+"""LCPR training augmentations (lcpr_core.training.augment): yaw by camera slots, lighting, a missing camera."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lcpr_core.errors import InvalidValueError
+from lcpr_core.preprocess.range_image import range_image, rotate_z
+from lcpr_core.training.augment import SLOT_YAWS_DEG, AugmentConfig, augment, range_columns, turn
+
+
+def cloud(seed: int = 0, n: int = 20000) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    azimuth = rng.uniform(-np.pi, np.pi, n)
+    dist = rng.uniform(3.0, 60.0, n)
+    return np.c_[dist * np.cos(azimuth), dist * np.sin(azimuth), rng.uniform(-2.0, 3.0, n)]
+
+
+@pytest.mark.parametrize("k", range(1, 6))
+def test_rolling_the_range_image_is_the_cloud_turned_by_the_slot_angle(k: int) -> None:
+    points = cloud(k)
+    yaw = SLOT_YAWS_DEG[k - 1]
+    rolled = np.roll(range_image(points, width=288), range_columns(yaw, 288), axis=-1)
+    turned = range_image(rotate_z(points, -yaw), width=288)
+    assert np.mean(np.isclose(rolled, turned)) > 0.99  # pixel borders may round the other way
+
+
+def test_turning_by_one_slot_shows_the_front_left_camera_in_front() -> None:
+    images = np.arange(6, dtype=np.uint8).reshape(6, 1, 1, 1) * np.ones((6, 2, 2, 3), np.uint8)
+    cameras = np.array([True, True, True, True, True, False])
+    ranges = np.zeros((4, 288), np.float32)
+    ranges[:, 0] = 1.0
+    out_images, out_cameras, out_ranges = turn(images, cameras, ranges, 1)
+    assert out_images[:, 0, 0, 0].tolist() == [5, 0, 1, 2, 3, 4] and out_cameras.tolist()[0] is False
+    assert np.flatnonzero(out_ranges[0]).tolist() == [44]  # 55 deg of 288 columns
+
+
+def test_probability_zero_changes_nothing_and_one_applies_each_augmentation() -> None:
+    rng = np.random.default_rng(0)
+    images = rng.integers(0, 256, (8, 6, 4, 4, 3), dtype=np.uint8)
+    cameras = np.ones((8, 6), bool)
+    ranges = rng.uniform(1, 50, (8, 4, 288)).astype(np.float32)
+    same = augment(images, cameras, ranges, AugmentConfig(), rng)
+    assert all(np.array_equal(a, b) for a, b in zip(same, (images, cameras, ranges), strict=True))
+    dropped = augment(images, cameras, ranges, AugmentConfig(camera_drop=1.0), rng)[1]
+    assert (dropped.sum(axis=1) == 5).all()
+    dark = augment(images, cameras, ranges, AugmentConfig(lighting=1.0, brightness=(0.5, 0.5)), rng)[0]
+    assert np.allclose(dark, np.clip(images * 0.5 + 0.5, 0, 255).astype(np.uint8))
+    yawed = augment(images, cameras, ranges, AugmentConfig(yaw=1.0), rng)
+    assert not np.array_equal(yawed[2], ranges) and np.array_equal(np.sort(yawed[2], axis=-1), np.sort(ranges, axis=-1))
+    assert np.array_equal(images, images.copy())  # the inputs are not changed in place
+
+
+def test_bad_augmentation_settings_name_the_accepted_values() -> None:
+    with pytest.raises(InvalidValueError, match=r"augment.yaw=1.5; expected a probability in \[0, 1\]"):
+        AugmentConfig(yaw=1.5)
+    with pytest.raises(InvalidValueError, match="expected 0 < low <= high"):
+        AugmentConfig(brightness=(1.2, 0.5))
+    with pytest.raises(InvalidValueError, match="needs the 6 nuScenes cameras"):
+        augment(np.zeros((1, 4, 2, 2, 3), np.uint8), np.ones((1, 4), bool), np.zeros((1, 2, 8), np.float32),
+                AugmentConfig(yaw=1.0), np.random.default_rng(0))
