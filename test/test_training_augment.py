@@ -41,7 +41,8 @@ def test_probability_zero_changes_nothing_and_one_applies_each_augmentation() ->
     cameras = np.ones((8, 6), bool)
     ranges = rng.uniform(1, 50, (8, 4, 288)).astype(np.float32)
     same = augment(images, cameras, ranges, AugmentConfig(), rng)
-    assert all(np.array_equal(a, b) for a, b in zip(same, (images, cameras, ranges), strict=True))
+    originals: tuple[np.ndarray, ...] = (images, cameras, ranges)
+    assert all(np.array_equal(a, b) for a, b in zip(same, originals, strict=True))
     dropped = augment(images, cameras, ranges, AugmentConfig(camera_drop=1.0), rng)[1]
     assert (dropped.sum(axis=1) == 5).all()
     dark = augment(images, cameras, ranges, AugmentConfig(lighting=1.0, brightness=(0.5, 0.5)), rng)[0]
