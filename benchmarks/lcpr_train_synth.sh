@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Train the narrow CPU LCPR on two synthetic drives and compare it, on a held-out drive of
 # another seed (another street graph and city), with its seeded initialisation and Scan Context.
-# These are the commands behind the figures in README ("Training"). On 2 idle cores the
+# This is the recipe of the earlier bundled weights (README "Training": "earlier bundled weights");
+# the bundled weights now come from benchmarks/lcpr_corpus.sh + lcpr_train_corpus.sh. On 2 idle cores the
 # training takes ~4 min (15-25 s per epoch); on a shared machine it took 25 min.
 #
 #   bash benchmarks/lcpr_train_synth.sh [OUT]      (default OUT=out/train_synth)
@@ -31,7 +32,7 @@ $PY -m lcpr_ros.evaluate "$OUT/synth_s7.bag" --weights "$OUT/lcpr_synth_narrow.p
 $PY -m lcpr_ros.evaluate "$OUT/synth_s7.bag" --weights "$OUT/run/init.pth" --threads 2 --quiet \
     --no-scan-context --out "$OUT/heldout_init"
 
-# 5. operating threshold for the node (lcpr_core.pretrained.BUNDLED_MAX_DISTANCE): the max-F1
+# 5. operating threshold of those weights (then lcpr_core.pretrained.BUNDLED_MAX_DISTANCE): the max-F1
 #    threshold of the online protocol on a validation city of its own (seed 3)
 [ -d "$OUT/synth_s3.bag" ] || $PY -m citysim.cli --seed 3 --frames 300 --image-size 400x225 \
     --workers 2 --no-progress --out "$OUT/synth_s3.bag"

@@ -68,7 +68,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--frames", type=int, default=200, help="keyframes of the drive (0.5 s, 5 m apart)")
     p.add_argument("--seed", type=int, default=7,
-                   help="seed of the synthetic city and drive (7: held out; the bundled weights saw 1 and 2)")
+                   help="seed of the synthetic city and drive (7: a test city the bundled weights never saw)")
     p.add_argument("--image-size", default="640x360", help="rendered camera size WxH")
     weights = p.add_mutually_exclusive_group()
     weights.add_argument("--weights", default=None, help="LCPR checkpoint (default: the bundled trained one)")
