@@ -1,9 +1,11 @@
 """The node's settings as typed config; every leaf becomes a dotted ROS parameter.
 
 ``__post_init__`` refuses a bad value with a ValueError naming it (turned into a
-ConfigError by :mod:`vseq2pc_ros.params`). Defaults fit the KITTI-like synthetic rig
-(citysim.rigs.kitti_rig: base_link = velodyne, camera_left 0.27 m ahead,
-0.06 m left, 0.08 m down, level, looking along +x).
+ConfigError by :mod:`vseq2pc_ros.params`). The default extrinsics are KITTI's published
+sensor setup (camera 0 0.27 m ahead of the Velodyne, 0.06 m left, 0.08 m lower, level,
+looking along +x; the simulator's KITTI-like rig copies the same numbers); any other vehicle
+must set ``extrinsics.*`` to its own calibration, and the node warns at start while they are
+left at this default.
 """
 from __future__ import annotations
 
@@ -22,7 +24,7 @@ from ros_common.config import INPUT_QOS, DiagnosticsConfig, MapFileConfig, requi
 EXTRINSICS_FORMATS = ("xyz_rpy", "matrix")
 HALF_PI = math.pi / 2
 
-#: lidar_T_cam of the KITTI-like synthetic rig (optical frame: z forward, x right, y down).
+#: lidar_T_cam of KITTI's sensor setup, camera 0 in the Velodyne frame (optical frame: z forward, x right, y down).
 KITTI_LIDAR_T_CAM: tuple[float, ...] = (
     0.0, 0.0, 1.0, 0.27,
     -1.0, 0.0, 0.0, 0.06,

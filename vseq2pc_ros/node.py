@@ -48,7 +48,7 @@ from ros_common.stamps import NS_PER_S, StampOrder, stamp_ns
 from ros_common.stats import NodeStats
 from ros_common.worker import Worker
 
-from .config import NodeConfig
+from .config import ExtrinsicsConfig, NodeConfig
 from .inputs import CLOUD_NAN, SIZE_MISMATCH, depth_image, intrinsics, label_image, labelled_cloud
 from .mapstore import open_map
 from .outputs import candidates_msg, loop_closure_msg
@@ -106,6 +106,10 @@ class Vseq2pcNode(NodeStats, Node):
         if not cfg.model.sequence:
             log.warning(f"model.sequence and model.descriptor are empty: seeded random weights (seed "
                         f"{cfg.model.seed}), for testing only; matches mean nothing")
+        if cfg.extrinsics == ExtrinsicsConfig():
+            log.warning("extrinsics.* are at their default, KITTI's camera-0-to-Velodyne setup; set them to this "
+                        "vehicle's camera-to-LiDAR calibration (extrinsics.xyz and extrinsics.rpy, or "
+                        "extrinsics.format:=matrix with extrinsics.matrix)")
         self.detector = SequenceDetector(cfg.detector(), net=self.net,
                                          prior_map=open_map(cfg.map.path, self.net, cfg.match.search()))
         self._map_lock = threading.Lock()
