@@ -37,16 +37,15 @@ from lcpr_core.atomic import atomic_path, save_figure  # noqa: E402
 from lcpr_core.describer import Describer, ModelConfig  # noqa: E402
 from lcpr_core.evaluation import database_query_protocol, ground_truth  # noqa: E402
 from lcpr_core.preprocess.camera import CameraInput, to_pil  # noqa: E402
-from lcpr_core.preprocess.range_image import rotate_z  # noqa: E402
+from lcpr_core.preprocess.range_image import NO_RETURN  # noqa: E402
+from lcpr_core.preprocess.turn import SLOT_YAWS_DEG, slot_yaw_deg, turn_frame  # noqa: E402
 from lcpr_core.pretrained import default_weights  # noqa: E402
 from lcpr_core.timing import cpu_model  # noqa: E402
 from msg_tools.frames import NUSCENES_CAMERAS  # noqa: E402
 from msg_tools.progress import progress_iter  # noqa: E402
 
-#: The vehicle turned left by k camera slots (k = 1..6): the angle between the slots' cameras (nuScenes rig).
-YAWS_DEG = (55.0, 110.0, 180.0, 250.0, 305.0, 360.0)
+TURNS = range(1, len(SLOT_YAWS_DEG) + 2)  # k = 1..6 camera slots: 55 .. 305 deg and the full turn
 BRIGHTNESS = (0.3, 0.5, 0.7, 1.0, 1.3, 1.6)
-NO_RETURN = -1.0  # what range_image writes where no point falls
 
 
 @dataclass
@@ -76,9 +75,7 @@ def render(route: str, seed: int, frames: int, image_size: tuple[int, int]) -> l
 def turned(k: int) -> Perturb:
     """The vehicle turned left by k slots: slot j now shows what slot j - k showed; the cloud turns the other way."""
     def describe(describer: Describer, kf: Keyframe) -> np.ndarray:
-        shift = k % len(kf.images)
-        rolled = kf.images[-shift:] + kf.images[:-shift] if shift else list(kf.images)
-        return describer.describe(rolled, rotate_z(kf.points, -YAWS_DEG[k - 1]))
+        return describer.describe(*turn_frame(kf.images, kf.points, k))
     return describe
 
 
@@ -109,7 +106,7 @@ def brightness(factor: float) -> Perturb:
 def conditions() -> dict[str, dict[str, Perturb | None]]:
     """Study -> condition -> how a query is described (None: as recorded)."""
     return {
-        "yaw": {f"{yaw:g}": (None if k == len(YAWS_DEG) else turned(k)) for k, yaw in enumerate(YAWS_DEG, start=1)},
+        "yaw": {f"{slot_yaw_deg(k):g}": (None if k == TURNS[-1] else turned(k)) for k in TURNS},
         "occlusion": {"none": None, **{f"{name} out": camera_out(i) for i, name in enumerate(NUSCENES_CAMERAS)},
                       "LiDAR 1/4 out": lidar_quarter_out},
         "lighting": {f"{f:g}": (None if f == 1.0 else brightness(f)) for f in BRIGHTNESS},

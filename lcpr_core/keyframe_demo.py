@@ -19,6 +19,7 @@ from .describer import Describer, ModelConfig
 from .preprocess import NUSCENES_CAMERAS, range_image
 from .preprocess.dataset_files import find_nuscenes_keyframe
 from .preprocess.range_image import rotate_z
+from .preprocess.turn import turn_frame
 from .timing import median_seconds
 
 log = logging.getLogger("lcpr_demo")
@@ -109,7 +110,7 @@ def yaw_and_degradation(
         f"vehicle turned {slot_deg:.0f} deg (cloud rotated, cameras rolled a slot)":
             describer.describe(rolled, rotate_z(points, -slot_deg)),
         "vehicle turned 55 deg (nuScenes camera spacing; not a pixel shift)":
-            describer.describe(rolled, rotate_z(points, -55.0)),
+            describer.describe(*turn_frame(images, points, 1)),
         "CAM_FRONT blacked out (a camera that stopped sending)": describer.describe([None, *images[1:]], points),
         "for contrast: the cloud seen from 10 m further on": describer.describe(images, moved),
     }

@@ -6,7 +6,8 @@ import pytest
 
 from lcpr_core.errors import InvalidValueError
 from lcpr_core.preprocess.range_image import range_image, rotate_z
-from lcpr_core.training.augment import SLOT_YAWS_DEG, AugmentConfig, augment, range_columns, turn
+from lcpr_core.preprocess.turn import SLOT_YAWS_DEG, range_columns, turn_frame
+from lcpr_core.training.augment import AugmentConfig, augment, turn
 
 
 def cloud(seed: int = 0, n: int = 20000) -> np.ndarray:
@@ -33,6 +34,16 @@ def test_turning_by_one_slot_shows_the_front_left_camera_in_front() -> None:
     out_images, out_cameras, out_ranges = turn(images, cameras, ranges, 1)
     assert out_images[:, 0, 0, 0].tolist() == [5, 0, 1, 2, 3, 4] and out_cameras.tolist()[0] is False
     assert np.flatnonzero(out_ranges[0]).tolist() == [44]  # 55 deg of 288 columns
+
+
+def test_a_raw_frame_turned_by_k_slots_matches_the_cached_inputs_turned_alike() -> None:
+    points = cloud(7)
+    images, turned_points = turn_frame(list("ABCDEF"), points, 2)
+    assert images == list("EFABCD")
+    cached = np.roll(range_image(points, width=288), range_columns(SLOT_YAWS_DEG[1], 288), axis=-1)
+    assert np.mean(np.isclose(range_image(turned_points, width=288), cached)) > 0.99
+    full, same = turn_frame(list("ABCDEF"), points, 6)
+    assert full == list("ABCDEF") and np.allclose(same, points)
 
 
 def test_probability_zero_changes_nothing_and_one_applies_each_augmentation() -> None:

@@ -9,6 +9,8 @@ import numpy as np
 
 from ..errors import InputShapeError, InvalidValueError
 
+NO_RETURN = -1.0  # a range-image pixel no point falls in
+
 
 @dataclass(frozen=True)
 class LidarPreset:
@@ -121,7 +123,7 @@ def range_image(
     u = np.clip(np.floor(0.5 * (yaw / np.pi + 1.0) * cfg.width), 0, cfg.width - 1).astype(np.int64)
     v = np.clip(np.floor((1.0 - (pitch + fov_down) / fov) * cfg.height), 0, cfg.height - 1).astype(np.int64)
 
-    image = np.full(cfg.height * cfg.width, -1.0, dtype=np.float32)
+    image = np.full(cfg.height * cfg.width, NO_RETURN, dtype=np.float32)
     pixel = v * cfg.width + u
     order = np.lexsort((rng, pixel))  # by pixel, nearest first within a pixel
     first = np.ones(order.size, dtype=bool)

@@ -4,8 +4,8 @@ Applied to the cached training inputs of each optimiser step (never to the descr
 validation compute), each sample independently:
 
 - yaw: the vehicle turned by k whole camera slots (k uniform in 1..C-1): the C images rolled by k slots
-  together with the range image's columns rolled by the slot's angle (``SLOT_YAWS_DEG``, the nuScenes
-  camera yaws), which is the cloud turned by that angle;
+  together with the range image's columns rolled by the slot's angle (:mod:`lcpr_core.preprocess.turn`),
+  which is the cloud turned by that angle;
 - lighting: every image's brightness scaled by a factor uniform in ``brightness`` (as PIL's
   ImageEnhance.Brightness: a blend with black, clipped);
 - camera drop: one camera, chosen at random, blacked out (a zero slot, as a camera that stopped sending).
@@ -17,9 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InvalidValueError
-
-#: Yaw of the vehicle when camera slot k (k = 1..5) looks where slot 0 looked (nuScenes camera order).
-SLOT_YAWS_DEG = (55.0, 110.0, 180.0, 250.0, 305.0)
+from ..preprocess.turn import SLOT_YAWS_DEG, range_columns, slot_yaw_deg
 
 
 @dataclass(frozen=True)
@@ -43,16 +41,11 @@ class AugmentConfig:
         return self.yaw > 0 or self.lighting > 0 or self.camera_drop > 0
 
 
-def range_columns(yaw_deg: float, width: int) -> int:
-    """Columns a range image shifts when the vehicle turns left by ``yaw_deg`` (the cloud by -yaw_deg)."""
-    return round(yaw_deg * width / 360.0) % width
-
-
 def turn(images: np.ndarray, cameras: np.ndarray, ranges: np.ndarray, k: int) -> tuple[np.ndarray, ...]:
     """One sample (C x H x W x 3, C, h x w) seen after turning left by k camera slots."""
     if k == 0:
         return images, cameras, ranges
-    shift = range_columns(SLOT_YAWS_DEG[k - 1], ranges.shape[-1])
+    shift = range_columns(slot_yaw_deg(k), ranges.shape[-1])
     return np.roll(images, k, axis=0), np.roll(cameras, k, axis=0), np.roll(ranges, shift, axis=-1)
 
 
