@@ -11,7 +11,7 @@ import math
 from lcpr_core.describer import PRECISIONS, RUNTIMES
 from lcpr_core.descriptor_map import INDEX_TYPES
 from lcpr_core.preprocess import CUSTOM, PRESETS
-from ros_common.config import INPUT_QOS
+from ros_common.config import SHARED_DOCS
 from ros_common.params import ParamDoc
 
 from .config import CAMERA_TYPES
@@ -21,6 +21,7 @@ BIG = 2**31 - 1
 
 
 DOCS: dict[str, ParamDoc] = {
+    **SHARED_DOCS,
     # ---- verification (geometric check of every candidate against the LiDAR)
     "verify.enabled": ParamDoc("register each candidate's cloud against the query's and publish verified loops "
                                "only; false = publish the nearest descriptor unchecked (the old behaviour)",
@@ -81,16 +82,12 @@ DOCS: dict[str, ParamDoc] = {
     "map.hnsw_ef_construction": ParamDoc("HNSW build breadth (map.index = hnsw)", 1, 1 << 20),
     "map.path": ParamDoc("descriptor map file (.npz), loaded at start when it exists and saved on ~/save_map "
                          "and at shutdown; empty = in memory only"),
-    "map.save_on_shutdown": ParamDoc("save the map to map.path when the node stops (Ctrl-C, SIGTERM)"),
     "session": ParamDoc("source name stored with this run's keyframes"),
     # ---- topics (read-only)
     "camera_topics": ParamDoc("camera image topics in rig (nuScenes) order"),
     "camera_type": ParamDoc("message type of the camera topics; auto: topics ending in /compressed are "
                             "sensor_msgs/CompressedImage, others sensor_msgs/Image", choices=CAMERA_TYPES),
     "lidar_topic": ParamDoc("sensor_msgs/PointCloud2 topic"),
-    "input_qos": ParamDoc("QoS of the sensor subscriptions: best_available (the default: reliable with reliable "
-                          "publishers such as ros2 bag play, best effort with best-effort drivers), sensor_data "
-                          "(best effort) or reliable", choices=INPUT_QOS),
     "odom_topic": ParamDoc("nav_msgs/Odometry topic for poses (markers, keyframe.min_distance); empty = none"),
     # ---- synchronisation
     "sync.slop": ParamDoc("s: each camera's image nearest the cloud stamp within this is used", 0.0, 10.0,
@@ -107,7 +104,5 @@ DOCS: dict[str, ParamDoc] = {
     "sync.jump_back": ParamDoc("s: a header stamp this much older than its stream's newest (a bag played again, "
                                "--loop, a simulator reset) starts a new session in the same map; 0 = refuse it "
                                "as out of order", 0.0, 86400.0),
-    # ---- diagnostics
-    "diagnostics.period": ParamDoc("s between /diagnostics messages", 0.05, 3600.0),
-    "diagnostics.window": ParamDoc("latest frames in the latency percentiles", 1, 100000),
+    # ---- input_qos, map.save_on_shutdown, diagnostics: ros_common.config.SHARED_DOCS
 }

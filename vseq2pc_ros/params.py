@@ -12,10 +12,11 @@ from typing import Any
 
 from rclpy.node import Node
 
+from ros_common.config import SHARED_DOCS
 from ros_common.params import Leaf, ParamDoc, build, describe, leaves, to_yaml, unique
 from ros_common.ros_params import RuntimeParameters
 
-from .config import EXTRINSICS_FORMATS, INPUT_QOS, NodeConfig
+from .config import EXTRINSICS_FORMATS, NodeConfig
 
 BIG = 2**31 - 1
 
@@ -26,6 +27,7 @@ Regenerate after adding fields:
 """
 
 DOCS: dict[str, ParamDoc] = {
+    **SHARED_DOCS,
     "lidar_topic": ParamDoc("sensor_msgs/PointCloud2 with x, y, z and a label field (SemanticKITTI ids) for the map"),
     "depth_topic": ParamDoc("sensor_msgs/Image metric depth: 32FC1 metres or 16UC1 millimetres (0 = unknown)"),
     "labels_topic": ParamDoc("sensor_msgs/Image SemanticKITTI label ids (mono8/8UC1/mono16/16UC1, 32SC1 = uint32 "
@@ -34,10 +36,6 @@ DOCS: dict[str, ParamDoc] = {
     "image_topic": ParamDoc("the colour image; only counted in /diagnostics (the network reads depth + labels); "
                             "empty = not subscribed"),
     "odom_topic": ParamDoc("nav_msgs/Odometry: poses at cloud and camera stamps (sequence distances, map poses)"),
-    "input_qos": ParamDoc("QoS of the sensor subscriptions: best_available (the default: reliable with reliable "
-                          "publishers such as ros2 bag play, best effort with best-effort drivers), sensor_data "
-                          "(best effort) or reliable",
-                          choices=INPUT_QOS),
     "model.sequence": ParamDoc("VSeq2PC sequence-model weights; empty (with model.descriptor empty) = seeded "
                                "random weights, testing only"),
     "model.descriptor": ParamDoc("VSeq2PC descriptor-model weights; a map file must have been made with them"),
@@ -83,11 +81,8 @@ DOCS: dict[str, ParamDoc] = {
                                "as out of order", 0.0, 86400.0),
     "map.path": ParamDoc("scan map file (.npz), loaded at start when it exists, saved on ~/save_map and at "
                          "shutdown; empty = in memory only"),
-    "map.save_on_shutdown": ParamDoc("save the map to map.path when the node stops (Ctrl-C, SIGTERM)"),
     "worker.max_waiting": ParamDoc("clouds / camera frames queued for the worker (oldest dropped when full)",
                                    1, 100000),
-    "diagnostics.period": ParamDoc("s between /diagnostics messages", 0.05, 3600.0),
-    "diagnostics.window": ParamDoc("latest items in the latency percentiles", 1, 100000),
 }
 
 
