@@ -24,9 +24,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from lcpr_core.models import DescriptorModel
 from lcpr_core.timing import memory_mb
 from lcpr_core.vseq2pc.checkpoint import load_descriptor_state_dict
+from lcpr_core.vseq2pc.models import DescriptorModel
 from lcpr_core.vseq2pc.retrieval import ScanDatabase, SearchConfig
 
 

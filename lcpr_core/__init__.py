@@ -5,10 +5,11 @@ Pure Python and PyTorch: nothing here imports ROS.
 from .checkpoint import init_from_imagenet, load_weights, read_state_dict, save_checkpoint
 from .describer import Describer, ModelConfig, build_model
 from .errors import CheckpointError, InputShapeError, LcprError, MapError, MapSchemaError, VerificationError
-from .models import LCPR, DescriptorModel, LcprOutput, SequenceModel
+from .models import LCPR, LcprOutput
 from .preprocess import PRESETS, LidarPreset, camera_tensor, cameras_tensor, range_image
-from .preprocess.structure import lidar_slices, structure_feature
 from .verification import GeometricVerifier, Verification, VerifierConfig
+from .vseq2pc.models import DescriptorModel, SequenceModel
+from .vseq2pc.preprocess import lidar_slices, structure_feature
 
 __all__ = [
     "DescriptorModel", "SequenceModel", "lidar_slices", "structure_feature",

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from lcpr_core import lidar_slices, structure_feature
-from lcpr_core.preprocess.structure import (
+from lcpr_core.vseq2pc.preprocess import (
     CLASSES,
     camera_feature,
     camera_points,

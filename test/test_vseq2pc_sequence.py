@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from lcpr_core.errors import InputShapeError
-from lcpr_core.preprocess.structure import sequence_indices
 from lcpr_core.vseq2pc import SequenceBatch, SequenceBuilder
+from lcpr_core.vseq2pc.preprocess import sequence_indices
 from lcpr_core.vseq2pc.sequence import SequenceConfig, sequence_table
 
 

@@ -1,8 +1,4 @@
-"""Network modules."""
+"""LCPR's network modules (VSeq2PC's live in lcpr_core.vseq2pc.models)."""
 from .lcpr import LCPR, LcprOutput
 
 __all__ = ["LCPR", "LcprOutput"]
-from .descriptor_model import DescriptorModel
-from .sequence_model import SequenceModel
-
-__all__ += ["DescriptorModel", "SequenceModel"]

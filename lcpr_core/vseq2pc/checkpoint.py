@@ -40,7 +40,7 @@ from torch import nn
 from ..atomic import atomic_path
 from ..checkpoint import check_state_dict, read_state_dict
 from ..errors import CheckpointError, UnsafePickleError
-from ..models import DescriptorModel, SequenceModel
+from .models import DescriptorModel, SequenceModel
 
 __all__ = [
     "RestrictedUnpickler", "StubObject", "UnsafePickleError", "load_descriptor_state_dict",

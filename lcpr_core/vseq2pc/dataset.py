@@ -31,7 +31,7 @@ from msg_tools.errors import MsgToolsError
 
 from ..atomic import atomic_path
 from ..errors import InputShapeError, InvalidValueError
-from ..preprocess.structure import camera_feature, structure_feature
+from .preprocess import camera_feature, structure_feature
 from .sequence import OFFSETS, sequence_table
 
 __all__ = ["CACHE_SCHEMA_VERSION", "FeatureCache", "build_cache", "cache_from_frames", "camera_extrinsics", "main"]

@@ -27,8 +27,8 @@ import numpy as np
 
 from ..errors import InvalidValueError
 from ..keyframes import KeyframeConfig, KeyframeGate
-from ..preprocess.structure import camera_feature, structure_feature
 from .net import Vseq2pcNet
+from .preprocess import camera_feature, structure_feature
 from .retrieval import ScanMatch, SearchConfig, Vseq2pcMap
 from .sequence import SequenceBuilder, SequenceConfig
 

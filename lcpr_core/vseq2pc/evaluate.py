@@ -34,10 +34,10 @@ from ..atomic import atomic_path, save_figure
 from ..errors import InvalidValueError
 from ..evaluation import pr_sweep, ranked_protocol
 from ..metrics import PRResult
-from ..preprocess.structure import CAMERA_SECTORS
 from .dataset import FeatureCache, summary
 from .net import Vseq2pcNet, slice_tensor
 from .pairs import POSITIVE_RADIUS, evaluation_pairs, planar_distances
+from .preprocess import CAMERA_SECTORS
 from .retrieval import ScanDatabase, SearchConfig, head_logits
 
 __all__ = ["EvalConfig", "MethodEval", "evaluate", "evaluate_feature_match", "main"]

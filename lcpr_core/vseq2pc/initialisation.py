@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from ..models import DescriptorModel, SequenceModel
+from .models import DescriptorModel, SequenceModel
 
 __all__ = ["HEAD_BIAS", "initialise_sequence_model", "seeded_models"]
 

@@ -9,10 +9,10 @@ import numpy as np
 import torch
 
 from ..errors import InputShapeError
-from ..models import DescriptorModel, SequenceModel
-from ..preprocess.structure import CAMERA_SECTORS
 from .checkpoint import load_descriptor_state_dict, load_sequence_state_dict
 from .initialisation import seeded_models
+from .models import DescriptorModel, SequenceModel
+from .preprocess import CAMERA_SECTORS
 
 __all__ = ["DESCRIPTOR_DIM", "SLICES", "Vseq2pcNet", "scan_slice_descriptors", "slice_tensor", "weights_id"]
 
@@ -72,7 +72,7 @@ class Vseq2pcNet:
 
 
 def slice_tensor(features: torch.Tensor) -> torch.Tensor:
-    """n x C x 360 -> n x 8 x C x 360, as :func:`lcpr_core.preprocess.structure.lidar_slices` (batched torch):
+    """n x C x 360 -> n x 8 x C x 360, as :func:`lcpr_core.vseq2pc.preprocess.lidar_slices` (batched torch):
     slice s holds sectors [135 + 45 s, 225 + 45 s) (mod 360) at 135..224, zeros elsewhere."""
     n, c, sectors = features.shape
     step = sectors // SLICES

@@ -32,9 +32,9 @@ from ..errors import InputShapeError, InvalidValueError, MapError, MapSchemaErro
 from ..exclusion import matchable, matchable_prefix
 from ..map_file import check_header_fields, read_map_file, write_map_file
 from ..map_rows import MapRows, RowAccess
-from ..models import DescriptorModel
-from ..preprocess.structure import structure_feature
+from .models import DescriptorModel
 from .net import DESCRIPTOR_DIM, SLICES, Vseq2pcNet
+from .preprocess import structure_feature
 from .sequence import SequenceBatch
 
 __all__ = ["DATABASE_SCHEMA_VERSION", "ScanDatabase", "ScanMatch", "SearchConfig", "Vseq2pcMap", "head_logits"]

@@ -18,7 +18,7 @@ from typing import cast
 import numpy as np
 
 from ..errors import InputShapeError, InvalidValueError
-from ..preprocess.structure import camera_feature
+from .preprocess import camera_feature
 
 __all__ = ["OFFSETS", "SequenceBatch", "SequenceBuilder", "SequenceConfig", "sequence_table", "travelled_distance"]
 

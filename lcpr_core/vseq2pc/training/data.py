@@ -8,8 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ...preprocess.structure import CAMERA_SECTORS
 from ..dataset import FeatureCache
+from ..preprocess import CAMERA_SECTORS
 from .config import DRIVE_SPACING_M
 
 log = logging.getLogger("lcpr_core.vseq2pc.training")

@@ -13,7 +13,7 @@ import torch.nn.functional as F
 from msg_tools.progress import progress_bar
 
 from ...evaluation import pr_sweep
-from ...models import DescriptorModel, SequenceModel
+from ..models import DescriptorModel, SequenceModel
 from ..net import scan_slice_descriptors
 from ..pairs import (
     NEGATIVE_RADIUS,

@@ -6,7 +6,7 @@ import logging
 import torch
 import torch.nn.functional as F
 
-from ...models import DescriptorModel, SequenceModel
+from ..models import DescriptorModel, SequenceModel
 from ..net import scan_slice_descriptors
 from ..retrieval import head_logits
 

@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from ...models import SequenceModel
+from ..models import SequenceModel
 from .config import TrainConfig
 
 log = logging.getLogger("lcpr_core.vseq2pc.training")

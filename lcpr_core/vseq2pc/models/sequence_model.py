@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from ..errors import InputShapeError, InvalidValueError
+from ...errors import InputShapeError, InvalidValueError
 from .transformer import Block
 
 

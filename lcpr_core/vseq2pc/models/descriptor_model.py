@@ -5,7 +5,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..errors import InvalidValueError
+from ...errors import InvalidValueError
 
 PADDINGS = ("zeros", "circular")
 
