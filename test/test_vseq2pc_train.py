@@ -12,7 +12,7 @@ from lcpr_core.vseq2pc import Vseq2pcNet
 from lcpr_core.vseq2pc.dataset import FeatureCache
 from lcpr_core.vseq2pc.initialisation import seeded_models
 from lcpr_core.vseq2pc.pairs import TrainPairConfig, training_pairs
-from lcpr_core.vseq2pc.training import TrainConfig, lr_at, main, place_loss, split, train
+from lcpr_core.vseq2pc.training import TrainConfig, lr_at, main, place_loss, ranking_loss, split, train
 
 
 def line_cache(n: int = 48, step: float = 1.5, seed: int = 0) -> FeatureCache:
@@ -136,3 +136,42 @@ def test_the_straight_through_clamp_changes_the_gradients_and_not_the_values() -
         grads.append(float(seq.decoder.head.bias.grad.abs().sum()))
     assert torch.equal(outputs[0], outputs[1]) and float(outputs[0].abs().max()) == 0.0
     assert grads[0] == 0.0 and grads[1] > 0.0
+
+
+def test_the_ranking_term_is_zero_when_positives_lead_by_far_and_large_when_a_negative_leads() -> None:
+    logits = torch.tensor([[9.0, -9.0, -9.0], [-9.0, 9.0, 0.0]])
+    positive = torch.tensor([[True, False, False], [True, False, False]])
+    negative = torch.tensor([[False, True, True], [False, True, False]])  # row 2's third scan has no label
+    per_row = [ranking_loss(logits[i : i + 1], positive[i : i + 1], negative[i : i + 1]).item() for i in range(2)]
+    assert per_row[0] == pytest.approx(np.log1p(2 * np.exp(-18.0)), abs=1e-6)
+    assert per_row[1] == pytest.approx(18.0, abs=1e-6)  # log(e^-9 + e^9) - (-9), the unlabelled scan ignored
+    assert ranking_loss(logits, positive, negative).item() == pytest.approx(np.mean(per_row), abs=1e-6)
+    assert ranking_loss(logits, positive, torch.zeros_like(negative)).item() == 0.0  # no row has both
+
+
+def test_hard_negatives_come_from_the_band_beyond_20_m_when_the_query_has_any_there() -> None:
+    positions = np.zeros((200, 3))
+    positions[:, 0] = np.arange(200) * 1.5  # a line: frame i is 1.5 i metres on
+    pairs = training_pairs(positions, np.array([0, 100]), np.arange(200), rng=np.random.default_rng(0),
+                           config=TrainPairConfig(negatives=20, negative_max_radius=40.0))
+    negatives = pairs.distance[~pairs.positive]
+    assert len(negatives) == 40 and negatives.min() > 20.0 and negatives.max() <= 40.0
+    with pytest.raises(ValueError, match="negative_max_radius=15"):
+        TrainPairConfig(negative_max_radius=15.0)
+
+
+def test_a_run_with_the_ranking_term_picks_its_best_epoch_by_validation_recall(tmp_path: Path) -> None:
+    there = line_cache(n=80, seed=3)
+    back = np.r_[np.arange(80), np.arange(79, -1, -1)]  # out and back along the same line: revisits
+    FeatureCache(camera=there.camera[back], camera_valid=there.camera_valid[back], lidar=there.lidar[back],
+                 poses=there.poses[back], stamps=np.arange(160) * 0.15, source="there and back"
+                 ).save(tmp_path / "val.npz")
+    run = train(tiny(tmp_path, val_cache=str(tmp_path / "val.npz"), ranking_weight=1.0, select="recall_at_1",
+                     epochs=2))
+    rows = [h for h in run.history if h["stage"] == 2]
+    assert all(np.isfinite(h["train_loss"]) and h["val_recall_at_1"] is not None for h in rows)
+    assert run.best_f1 == max(h["val_recall_at_1"] for h in rows)
+    with pytest.raises(ValueError, match="select='recall_at_1' needs val_cache"):
+        tiny(tmp_path, select="recall_at_1")
+    with pytest.raises(ValueError, match="select='best'"):
+        tiny(tmp_path, select="best")

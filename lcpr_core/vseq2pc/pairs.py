@@ -53,18 +53,23 @@ class PairSet:
 class TrainPairConfig:
     """Per query: ``positives`` scans within 3 m (with probability ``revisit_fraction`` one from a later or
     earlier pass, more than ``revisit_gap`` frames away, when there is one) and ``negatives`` per positive
-    beyond 20 m."""
+    beyond 20 m; with ``negative_max_radius`` set, the negatives come from 20 m..that radius (places of the
+    same drive that can look alike) where the query has any there, else from all beyond 20 m."""
 
     positives: int = 1
     negatives: int = 1
     revisit_fraction: float = 0.5
     revisit_gap: int = 50
+    negative_max_radius: float | None = None
 
     def __post_init__(self) -> None:
         if self.positives < 1 or self.negatives < 0:
             raise InvalidValueError(f"positives={self.positives}, negatives={self.negatives}; expected >= 1 and >= 0")
         if not 0.0 <= self.revisit_fraction <= 1.0:
             raise InvalidValueError(f"revisit_fraction={self.revisit_fraction}; expected a share in [0, 1]")
+        if self.negative_max_radius is not None and not self.negative_max_radius > NEGATIVE_RADIUS:
+            raise InvalidValueError(f"negative_max_radius={self.negative_max_radius}; expected None or more than "
+                                    f"{NEGATIVE_RADIUS:g} m (negatives lie beyond {NEGATIVE_RADIUS:g} m)")
 
     @property
     def scans_per_query(self) -> int:
@@ -88,6 +93,9 @@ def training_pairs(positions: np.ndarray, queries: np.ndarray, scans: np.ndarray
             pos = s[np.argsort(d)[:1]]
         revisit = pos[np.abs(pos - i) > config.revisit_gap]
         neg = s[d > NEGATIVE_RADIUS]
+        if config.negative_max_radius is not None:
+            near = s[(d > NEGATIVE_RADIUS) & (d <= config.negative_max_radius)]
+            neg = near if len(near) else neg
         if len(neg) == 0:
             neg = s[np.argsort(-d)[: max(1, config.negatives)]]
         for _ in range(config.positives):

@@ -11,7 +11,7 @@ from collections.abc import Sequence
 from ..pairs import (
     TrainPairConfig,
 )
-from .config import TrainConfig
+from .config import SELECT_METRICS, TrainConfig
 from .train import train
 
 log = logging.getLogger("lcpr_core.vseq2pc.training")
@@ -34,6 +34,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--negatives", type=int, default=d.pairs.negatives, help="negatives (> 20 m) per positive")
     p.add_argument("--revisit-fraction", type=float, default=d.pairs.revisit_fraction,
                    help="share of positives taken from another pass when there is one")
+    p.add_argument("--negative-max-radius", type=float, default=d.pairs.negative_max_radius,
+                   help="draw negatives from 20 m..this radius of the query when it has any there (hard negatives)")
+    p.add_argument("--ranking-weight", type=float, default=d.ranking_weight,
+                   help="weight of the ranking term (positives above negatives, softmax); 0 = the release's loss")
+    p.add_argument("--select", choices=SELECT_METRICS, default=d.select,
+                   help="what picks best_*.pth: the validation pairs' max F1, or Recall@1 on --val-cache")
     p.add_argument("--in-batch", action=argparse.BooleanOptionalAction, default=d.in_batch,
                    help="score each query against every scan sampled for the batch (default), or only its own")
     p.add_argument("--straight-through-clamp", action=argparse.BooleanOptionalAction,
@@ -58,7 +64,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             queries_per_epoch=args.queries_per_epoch, seq_base_lr=args.seq_base_lr,
             seq_warmup_epochs=args.seq_warmup_epochs, desc_lr=args.desc_lr,
             in_batch=args.in_batch, straight_through_clamp=args.straight_through_clamp,
-            pairs=TrainPairConfig(negatives=args.negatives, revisit_fraction=args.revisit_fraction),
+            pairs=TrainPairConfig(negatives=args.negatives, revisit_fraction=args.revisit_fraction,
+                                  negative_max_radius=args.negative_max_radius),
+            ranking_weight=args.ranking_weight, select=args.select,
             seed=args.seed, threads=args.threads, progress=not args.no_progress, resume=args.resume,
             init_sequence=args.init_sequence, init_descriptor=args.init_descriptor,
         )
@@ -68,7 +76,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"vseq2pc_train: error: {err}", file=sys.stderr)
         return 2
     print(f"done in {time.perf_counter() - start:.0f} s; weights in {os.fspath(config.out)} "
-          f"(best validation max F1 {run.best_f1:.3f})")
+          f"(best validation {'max F1' if config.select == 'max_f1' else 'Recall@1'} {run.best_f1:.3f})")
     return 0
 
 

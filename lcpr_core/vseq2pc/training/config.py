@@ -18,6 +18,9 @@ SEQUENCE_FILE = "sequence_model.pth"
 DESCRIPTOR_FILE = "descriptor_model.pth"
 STATE_FILE = "train_state.pt"
 DRIVE_SPACING_M = 1.0e6  # drives trained together lie this far apart: no pair across drives is a positive
+#: what picks the best epoch: the validation pairs' max F1, or Recall@1 of the validation drive's loop
+#: queries (vseq2pc_eval's protocol; needs a separate validation cache)
+SELECT_METRICS = ("max_f1", "recall_at_1")
 
 
 
@@ -39,6 +42,8 @@ class TrainConfig:
     seq_betas: tuple[float, float] = (0.9, 0.95)
     desc_lr: float = 0.002
     margin: float = 0.2
+    ranking_weight: float = 0.0  # weight of the ranking term (training.loss.ranking_loss); 0 = the release's loss
+    select: str = "max_f1"  # SELECT_METRICS
     in_batch: bool = True  # score every query of a batch against every sampled scan of the batch
     straight_through_clamp: bool = True  # gradients pass the sequence model's output clamp (SequenceModel)
     pairs: TrainPairConfig = field(default_factory=TrainPairConfig)
@@ -63,6 +68,12 @@ class TrainConfig:
             raise InvalidValueError(f"val_fraction={self.val_fraction}; expected a share in [0, 1)")
         if self.queries_per_epoch is not None and self.queries_per_epoch < 1:
             raise InvalidValueError(f"queries_per_epoch={self.queries_per_epoch}; expected None or >= 1")
+        if self.ranking_weight < 0:
+            raise InvalidValueError(f"ranking_weight={self.ranking_weight}; expected >= 0")
+        if self.select not in SELECT_METRICS:
+            raise InvalidValueError(f"select={self.select!r}; accepted: {', '.join(SELECT_METRICS)}")
+        if self.select == "recall_at_1" and self.val_cache is None:
+            raise InvalidValueError("select='recall_at_1' needs val_cache (a drive of its own with revisits)")
         if self.seq_base_lr <= 0 or self.desc_lr <= 0 or self.seq_warmup_epochs < 0:
             raise InvalidValueError("learning rates must be positive and seq_warmup_epochs >= 0")
 

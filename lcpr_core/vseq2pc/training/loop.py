@@ -26,7 +26,7 @@ from ..pairs import (
 from ..retrieval import head_logits
 from .config import TrainConfig
 from .data import TrainData
-from .loss import cross_logits, pair_logits, place_loss
+from .loss import cross_logits, pair_logits, place_loss, ranking_loss
 from .schedule import _set_lr, lr_at
 
 log = logging.getLogger("lcpr_core.vseq2pc.training")
@@ -44,7 +44,7 @@ class Run:
     stage: int = 1  # the stage of the last completed epoch (1 before anything ran)
     epoch: int = 0  # completed epochs of that stage
     history: list[dict[str, Any]] = field(default_factory=list)
-    best_f1: float = -1.0
+    best_f1: float = -1.0  # the best epoch's value of config.select (max F1 or Recall@1; name kept for resumes)
 
 
 def _epoch_queries(data: TrainData, config: TrainConfig, rng: np.random.Generator) -> np.ndarray:
@@ -114,7 +114,11 @@ def _pair_loss(run: Run, data: TrainData, queries: np.ndarray, pairs: PairSet) -
     scans = data.lidar[torch.from_numpy(pairs.scan)].view(len(queries), s, 12, -1)
     logits, sq = pair_logits(run.seq, run.desc, data.frames(queries), scans)
     labels = torch.from_numpy(pairs.label.astype(np.float32)).view(len(queries), s)
-    return place_loss(logits, sq, labels, margin=run.config.margin)
+    loss = place_loss(logits, sq, labels, margin=run.config.margin)
+    if run.config.ranking_weight > 0:
+        dist = torch.from_numpy(pairs.distance).view(len(queries), s)
+        loss = loss + run.config.ranking_weight * ranking_loss(logits, dist < POSITIVE_RADIUS, dist > NEGATIVE_RADIUS)
+    return loss
 
 
 def _in_batch_loss(run: Run, data: TrainData, queries: np.ndarray, scans: np.ndarray) -> torch.Tensor:
@@ -130,8 +134,12 @@ def _in_batch_loss(run: Run, data: TrainData, queries: np.ndarray, scans: np.nda
             weights[mask] = 1.0 / mask.sum()
     weights /= weights.sum()
     labels = torch.from_numpy(place_label(dist).astype(np.float32))
-    return place_loss(logits, sq, labels, margin=run.config.margin,
+    loss = place_loss(logits, sq, labels, margin=run.config.margin,
                       weights=torch.from_numpy(weights.astype(np.float32)))
+    if run.config.ranking_weight > 0:
+        loss = loss + run.config.ranking_weight * ranking_loss(
+            logits, torch.from_numpy(positive), torch.from_numpy(negative))
+    return loss
 
 
 @torch.inference_mode()

@@ -1,4 +1,5 @@
-"""The models' pair scores and the joint loss (BCE on the max-slice logit + contrastive on its distance)."""
+"""The models' pair scores and the joint loss (BCE on the max-slice logit + contrastive on its distance), and
+the optional ranking term (each query's positives against its negatives, softmax over the max-slice logits)."""
 from __future__ import annotations
 
 import logging
@@ -45,3 +46,20 @@ def place_loss(logits: torch.Tensor, sq_dist: torch.Tensor, labels: torch.Tensor
     bce = F.binary_cross_entropy_with_logits(logits, labels, reduction="none")
     per_pair = bce + labels * sq_dist + (1 - labels) * F.relu(margin - d) ** 2
     return per_pair.mean() if weights is None else (per_pair * weights).sum()
+
+
+def ranking_loss(logits: torch.Tensor, positive: torch.Tensor, negative: torch.Tensor) -> torch.Tensor:
+    """Mean over the queries (rows) with at least one positive and one negative scan of
+    -log(sum exp(positive logits) / sum exp(positive and negative logits)); 0 when no row has both.
+
+    logits, positive, negative: B x S (masks bool; scans in neither mask are ignored). What Recall@1
+    asks for: the query's own place scored above every other place, not each pair on its own.
+    """
+    usable = positive.any(dim=1) & negative.any(dim=1)
+    if not bool(usable.any()):
+        return logits.sum() * 0.0
+    lo = torch.finfo(logits.dtype).min
+    x, pos, neg = logits[usable], positive[usable], negative[usable]
+    top = torch.logsumexp(x.masked_fill(~pos, lo), dim=1)
+    every = torch.logsumexp(x.masked_fill(~(pos | neg), lo), dim=1)
+    return (every - top).mean()

@@ -25,7 +25,11 @@ Several drives train together (``--cache A.npz B.npz ...``): their frames are la
 side ``DRIVE_SPACING_M`` apart, so a pair across drives is always a negative.
 
 Validation: the last ``val_fraction`` of each drive's frames (or a separate cache) give
-the validation queries; per epoch its loss and the max F1 of its pairs.
+the validation queries; per epoch its loss and the max F1 of its pairs. With a separate
+validation cache, stage 2 also runs vseq2pc_eval's protocol on it (Recall@1 of its loop
+queries, max F1 at 1:100); ``select`` says which of the pairs' max F1 and that Recall@1
+picks the ``best_*`` weights. ``ranking_weight`` adds the ranking term of
+:func:`~lcpr_core.vseq2pc.training.loss.ranking_loss` to the stage-2 loss.
 
 The output folder holds ``sequence_model.pth`` (a state dict), ``descriptor_model.pth``
 (``{'state_dict': ...}``, the released layout), ``best_*.pth`` (highest validation max
@@ -48,7 +52,9 @@ from ..checkpoint import (
     load_sequence_state_dict,
 )
 from ..dataset import FeatureCache
+from ..evaluate import evaluate
 from ..initialisation import seeded_models
+from ..net import Vseq2pcNet
 from ..pairs import (
     PairSet,
     TrainPairConfig,
@@ -71,8 +77,9 @@ def train(config: TrainConfig) -> Run:
     out.mkdir(parents=True, exist_ok=True)
     caches = [FeatureCache.load(path) for path in config.caches]
     data, val = split(caches, 0.0 if config.val_cache else config.val_fraction)
-    if config.val_cache:
-        val = TrainData.from_cache(FeatureCache.load(config.val_cache))
+    val_drive = FeatureCache.load(config.val_cache) if config.val_cache else None
+    if val_drive is not None:
+        val = TrainData.from_cache(val_drive)
     if len(data.queries) == 0:
         raise InvalidValueError(f"{', '.join(config.caches)}: no complete query sequence in the training part; drive "
                                 "longer (a sequence needs 15 m after its query frame)")
@@ -109,11 +116,13 @@ def train(config: TrainConfig) -> Run:
             step = pretrain_epoch if stage == 1 else joint_epoch
             train_loss = step(run, data, epoch, rng)
             metrics = validate(run, val if val is not None else data, val_pairs, stage=stage)
+            if stage == 2 and val_drive is not None:
+                metrics.update(_protocol(run, val_drive))
             run.stage, run.epoch = stage, epoch
-            f1 = metrics["val_max_f1"]
-            best = stage == 2 and f1 is not None and f1 > run.best_f1
-            if best:
-                run.best_f1 = float(f1)  # type: ignore[arg-type]
+            score = metrics.get("val_max_f1" if config.select == "max_f1" else "val_recall_at_1")
+            best = stage == 2 and score is not None and score > run.best_f1
+            if best and score is not None:
+                run.best_f1 = float(score)
             run.history.append({"stage": stage, "epoch": epoch, "train_loss": train_loss, **metrics,
                                 "seq_lr": run.seq_opt.param_groups[0]["lr"] if run.seq_opt else None,
                                 "seconds": time.perf_counter() - start})
@@ -124,8 +133,15 @@ def train(config: TrainConfig) -> Run:
     return run
 
 
+def _protocol(run: Run, drive: FeatureCache) -> dict[str, float | None]:
+    """vseq2pc_eval's protocol on the validation drive: Recall@1 of its loop queries, max F1 at 1:100."""
+    result = evaluate(Vseq2pcNet.from_models(run.seq, run.desc), drive, name="validation")
+    return {"val_recall_at_1": result.recall_at.get(1), "val_protocol_max_f1": result.max_f1}
+
+
 def _report(h: dict[str, Any]) -> None:
     val = "-" if h["val_loss"] is None else f"{h['val_loss']:.4f}"
     f1 = "" if h["val_max_f1"] is None else f", val max F1 {h['val_max_f1']:.3f}"
-    print(f"stage {h['stage']} epoch {h['epoch']}: train loss {h['train_loss']:.4f}, val loss {val}{f1} "
+    r1 = "" if h.get("val_recall_at_1") is None else f", val R@1 {h['val_recall_at_1']:.3f}"
+    print(f"stage {h['stage']} epoch {h['epoch']}: train loss {h['train_loss']:.4f}, val loss {val}{f1}{r1} "
           f"({h['seconds']:.0f} s)", flush=True)
