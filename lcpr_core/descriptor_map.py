@@ -39,14 +39,15 @@ _EXACT_FALLBACK_ROWS = 16384
 
 @dataclass(frozen=True)
 class MapConfig:
-    """Descriptor size, producing model and search structure of a map.
+    """Descriptor size, descriptor tag and search structure of a map.
 
-    index: "flat" (exact L2) or "hnsw" (approximate, faiss.IndexHNSWFlat).
-    The hnsw_* fields only matter for "hnsw".
+    descriptor_tag: names what made the descriptors (a map file must carry the tag the
+    detector expects; written as ``model`` in the file header). index: "flat" (exact L2)
+    or "hnsw" (approximate, faiss.IndexHNSWFlat). The hnsw_* fields only matter for "hnsw".
     """
 
     dim: int = 256
-    model: str = "lcpr"
+    descriptor_tag: str = "lcpr"
     index: str = "flat"
     hnsw_m: int = 32
     hnsw_ef_search: int = 128
@@ -59,8 +60,8 @@ class MapConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
                 raise MapError(f"{name}={value!r} is not accepted; it must be a positive integer")
-        if not isinstance(self.model, str) or not self.model:
-            raise MapError(f"model={self.model!r} is not accepted; it must be a non-empty string")
+        if not isinstance(self.descriptor_tag, str) or not self.descriptor_tag:
+            raise MapError(f"descriptor_tag={self.descriptor_tag!r} is not accepted; it must be a non-empty string")
 
     def index_params(self) -> dict[str, Any]:
         """The index type and its parameters, as stored in a map file."""
@@ -111,7 +112,8 @@ class DescriptorMap(RowAccess):
         return self._config.dim
 
     def __repr__(self) -> str:
-        return f"DescriptorMap({len(self)} x {self.dim}-d {self._config.model!r}, index={self._config.index!r})"
+        tag, index = self._config.descriptor_tag, self._config.index
+        return f"DescriptorMap({len(self)} x {self.dim}-d {tag!r}, index={index!r})"
 
     @property
     def sources(self) -> list[str]:
@@ -291,7 +293,7 @@ class DescriptorMap(RowAccess):
             "format": _FORMAT,
             "schema_version": SCHEMA_VERSION,
             "dim": self.dim,
-            "model": self._config.model,
+            "model": self._config.descriptor_tag,  # the file keeps its field name
             **self.config.index_params(),
             "count": len(self),
             "sources": self._source_names,
@@ -311,7 +313,7 @@ class DescriptorMap(RowAccess):
     def load(cls, path: str | os.PathLike[str], *, expect: MapConfig | None = None) -> DescriptorMap:
         """Read a map written by save() and rebuild its index (the file is only read).
 
-        With ``expect``, the file's dim and model must equal expect's (else
+        With ``expect``, the file's dim and descriptor tag must equal expect's (else
         MapSchemaError) and the index is built as ``expect`` says; without it, as
         the file says.
         """
@@ -323,10 +325,10 @@ class DescriptorMap(RowAccess):
         if not all(isinstance(name, str) for name in header["sources"]):
             raise MapError(f"map file {where} header field 'sources' holds non-strings; expected a list of str")
         file_dim, file_model = header["dim"], header["model"]
-        if expect is not None and (expect.dim != file_dim or expect.model != file_model):
+        if expect is not None and (expect.dim != file_dim or expect.descriptor_tag != file_model):
             raise MapSchemaError(
                 f"map file {where} holds {file_dim}-d {file_model!r} descriptors; "
-                f"this detector makes {expect.dim}-d {expect.model!r} descriptors"
+                f"this detector makes {expect.dim}-d {expect.descriptor_tag!r} descriptors"
             )
         config = expect if expect is not None else _config_from_header(header, where)
         x, ids, stamps, poses, codes = _check_arrays(data, header, where)
@@ -405,7 +407,7 @@ def _config_from_header(header: dict[str, Any], where: str) -> MapConfig:
         extra = dict(hnsw_m=header.get("m"), hnsw_ef_search=header.get("ef_search"),
                      hnsw_ef_construction=header.get("ef_construction"))
     try:
-        return MapConfig(dim=header["dim"], model=header["model"], index=header["index"], **extra)
+        return MapConfig(dim=header["dim"], descriptor_tag=header["model"], index=header["index"], **extra)
     except MapError as err:
         raise MapError(f"map file {where} has a bad configuration: {err}") from err
 

@@ -43,7 +43,7 @@ from .inputs import CLOUD_NAN, camera_input, cloud_points, compressed_payload, r
 from .mapstore import load_prior_map, save_map
 from .markers import LoopMarkers, MarkerSink, NoMarkers
 from .outputs import candidates_msg, loop_closure_msg
-from .params import Settings, all_leaves, describe_all, settings_from
+from .params import RENAMED, Settings, all_leaves, describe_all, settings_from
 from .sync import LATE_IMAGE, TIME_JUMPED, SyncedFrame, Synchroniser
 
 NODE_NAME = "lcpr"
@@ -66,7 +66,7 @@ class LcprNode(NodeStats, Node):
     def __init__(self, *, parameter_overrides: list[Parameter] | None = None, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, parameter_overrides=parameter_overrides, **kwargs)
         self._leaves = all_leaves()
-        self.settings: Settings = settings_from(declare(self, self._leaves))
+        self.settings: Settings = settings_from(declare(self, self._leaves, renamed=RENAMED))
         node_cfg, det_cfg = self.settings.node, self.settings.detector
         log = self.get_logger()
         self.init_stats(log.warning, window=node_cfg.diagnostics.window)

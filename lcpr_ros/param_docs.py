@@ -75,7 +75,8 @@ DOCS: dict[str, ParamDoc] = {
     "sensors.require_lidar": ParamDoc("no cloud -> no keyframe; false: an empty range image is used"),
     # ---- descriptor map (read-only: fixed by the map)
     "map.dim": ParamDoc("descriptor size stored in the map", 1, 65536),
-    "map.model": ParamDoc("name of the model whose descriptors the map holds; a map file must match it"),
+    "map.descriptor_tag": ParamDoc("names what made the map's descriptors (the file header's 'model' field); a map "
+                                   "file must carry the same tag (formerly map.model, still accepted with a warning)"),
     "map.index": ParamDoc("search structure", choices=INDEX_TYPES),
     "map.hnsw_m": ParamDoc("HNSW graph degree (map.index = hnsw)", 1, 1024),
     "map.hnsw_ef_search": ParamDoc("HNSW search breadth (map.index = hnsw)", 1, 1 << 20),

@@ -37,6 +37,8 @@ class Settings:
 
 
 ROOTS: tuple[type, ...] = (DetectorConfig, NodeConfig)
+#: deprecated parameter name -> today's; the old name is still read, with a warning
+RENAMED: dict[str, str] = {"map.model": "map.descriptor_tag"}
 
 
 def all_leaves() -> list[Leaf]:
@@ -58,7 +60,7 @@ def settings_from(values: Mapping[str, Any]) -> Settings:
 def settings_from_file(path: str | os.PathLike[str]) -> Settings:
     """The settings a ``--params-file`` (e.g. config/lcpr.yaml) gives the node, leaves absent from it at their
     defaults; ConfigError names the file and what is wrong with it."""
-    return settings_from(read_params_file(path, all_leaves()))
+    return settings_from(read_params_file(path, all_leaves(), renamed=RENAMED))
 
 
 def yaml_text() -> str:
@@ -68,4 +70,6 @@ def yaml_text() -> str:
 
 def describe_all() -> str:
     """The parameter list of ``lcpr_node --help``."""
-    return describe(all_leaves())
+    old = "".join(f"\n  {name} (deprecated: the old name of {new}, still read with a warning)"
+                  for name, new in RENAMED.items())
+    return describe(all_leaves()) + old

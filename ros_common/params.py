@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import typing
+import warnings
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -122,9 +123,30 @@ def unique(found: Sequence[Leaf]) -> list[Leaf]:
     return list(found)
 
 
-def read_params_file(path: str | os.PathLike[str], leaves_: Sequence[Leaf]) -> dict[str, Any]:
+def renamed_value(old: str, new: str, *, old_value: Any, new_value: Any, default: Any, where: str) -> Any:
+    """The value of parameter ``new`` when the deprecated name ``old`` may have been given too.
+
+    ``None`` for an absent name; a name at ``default`` counts as absent. ConfigError when both were given
+    different values; a FutureWarning (shown by default) when only the old name was used.
+    """
+    old_given = old_value is not None and old_value != default
+    new_given = new_value is not None and new_value != default
+    if not old_given:
+        return default if new_value is None else new_value
+    if new_given and new_value != old_value:
+        raise ConfigError(f"{where}: {old}={old_value!r} and {new}={new_value!r} disagree; {old} is the old name of "
+                          f"{new}: give only {new}")
+    warnings.warn(f"{where}: parameter {old} is deprecated, use {new} (took {new}={old_value!r})", FutureWarning,
+                  stacklevel=3)
+    return old_value
+
+
+def read_params_file(path: str | os.PathLike[str], leaves_: Sequence[Leaf], *,
+                     renamed: Mapping[str, str] | None = None) -> dict[str, Any]:
     """Every leaf's value from a ROS 2 ``--params-file`` (one node section with ``ros__parameters``),
-    leaves absent from it at their defaults; ConfigError names the file and what is wrong with it."""
+    leaves absent from it at their defaults; ConfigError names the file and what is wrong with it.
+
+    ``renamed`` maps deprecated parameter names to today's: an old name is still read (with a warning)."""
     import yaml  # local: only the offline tools read parameter files themselves
 
     where = os.fspath(path)
@@ -139,6 +161,10 @@ def read_params_file(path: str | os.PathLike[str], leaves_: Sequence[Leaf]) -> d
                           "expected one (e.g. '/**: ros__parameters: ...')")
     values: dict[str, Any] = {leaf.name: leaf.default for leaf in leaves_}
     given = _flatten(sections[0]["ros__parameters"])
+    for old, new in (renamed or {}).items():
+        if old in given:
+            given[new] = renamed_value(old, new, old_value=given.pop(old), new_value=given.get(new),
+                                       default=values[new], where=f"parameter file {where}")
     unknown = sorted(set(given) - set(values))
     if unknown:
         raise ConfigError(f"parameter file {where} names unknown parameters {unknown}")

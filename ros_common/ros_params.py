@@ -1,7 +1,8 @@
 """Declaring the config's parameters on an rclpy node and validating changes at run time."""
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import warnings
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
@@ -10,7 +11,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from .errors import ConfigError
-from .params import Leaf
+from .params import Leaf, renamed_value
 
 
 def descriptor(leaf: Leaf) -> ParameterDescriptor:
@@ -28,20 +29,41 @@ def descriptor(leaf: Leaf) -> ParameterDescriptor:
     return desc
 
 
-def declare(node: Node, leaves: Sequence[Leaf]) -> dict[str, Any]:
+def declare(node: Node, leaves: Sequence[Leaf], *, renamed: Mapping[str, str] | None = None) -> dict[str, Any]:
     """Declare every leaf (overrides from --ros-args / params files apply) -> Python-typed values.
 
     A value outside its range or of the wrong type raises ConfigError naming the parameter.
+    ``renamed`` maps deprecated names to today's: an old name is declared too (read-only), and a value
+    given under it becomes the new parameter's value, with a warning in the log.
     """
+    defaults = {leaf.name: leaf.to_ros(leaf.default) for leaf in leaves}
+    old_values: dict[str, tuple[str, Any]] = {}  # new name -> (old name, the value given under it)
+    for old, new in (renamed or {}).items():
+        try:
+            value = node.declare_parameter(old, defaults[new], ParameterDescriptor(
+                description=f"deprecated: the old name of {new}", read_only=True)).value
+        except (InvalidParameterTypeException, InvalidParameterValueException) as err:
+            raise ConfigError(f"parameter {old} (the old name of {new}): {err}") from err
+        if value != defaults[new]:
+            old_values[new] = (old, value)
+            defaults[new] = value  # an override of the new name still wins; checked below
     values: dict[str, Any] = {}
     for leaf in leaves:
         try:
-            param = node.declare_parameter(leaf.name, leaf.to_ros(leaf.default), descriptor(leaf))
+            param = node.declare_parameter(leaf.name, defaults[leaf.name], descriptor(leaf))
         except InvalidParameterTypeException as err:
             hint = " (write a decimal point for a double, e.g. 1.0)" if leaf.kind is float else ""
             raise ConfigError(f"parameter {leaf.name}: {err}{hint}") from err
         except InvalidParameterValueException as err:
             raise ConfigError(f"parameter {leaf.name}: {err}") from err
+        if leaf.name in old_values:
+            old, old_value = old_values[leaf.name]
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                renamed_value(old, leaf.name, old_value=old_value, new_value=param.value,
+                              default=leaf.to_ros(leaf.default), where=f"node {node.get_name()}")
+            for warning in caught:
+                node.get_logger().warning(str(warning.message))
         values[leaf.name] = leaf.to_python(param.value)
     return values
 

@@ -181,7 +181,7 @@ def test_a_map_saved_as_hnsw_reloads_as_hnsw_unless_expect_says_flat(tmp_path: P
     assert DescriptorMap.load(tmp_path / "h.npz", expect=MapConfig(dim=DIM)).config.index == "flat"
 
 
-@pytest.mark.parametrize("expect", [MapConfig(dim=32), MapConfig(dim=DIM, model="other")])
+@pytest.mark.parametrize("expect", [MapConfig(dim=32), MapConfig(dim=DIM, descriptor_tag="other")])
 def test_a_map_of_another_dim_or_model_is_refused_and_left_untouched(tmp_path: Path, expect: MapConfig) -> None:
     m, _ = filled_map(20)
     path = tmp_path / "map.npz"
@@ -189,7 +189,7 @@ def test_a_map_of_another_dim_or_model_is_refused_and_left_untouched(tmp_path: P
     before, mtime = path.read_bytes(), os.stat(path).st_mtime_ns
     with pytest.raises(MapSchemaError) as err:
         DescriptorMap.load(path, expect=expect)
-    assert f"{DIM}-d 'lcpr'" in str(err.value) and f"{expect.dim}-d {expect.model!r}" in str(err.value)
+    assert f"{DIM}-d 'lcpr'" in str(err.value) and f"{expect.dim}-d {expect.descriptor_tag!r}" in str(err.value)
     assert str(path) in str(err.value)
     assert path.read_bytes() == before and os.stat(path).st_mtime_ns == mtime
 

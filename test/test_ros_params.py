@@ -13,7 +13,7 @@ from rclpy.parameter import Parameter
 
 from lcpr_core.detector import DetectorConfig, MatchConfig
 from lcpr_ros.config import NodeConfig, SyncConfig
-from lcpr_ros.params import Settings, all_leaves, settings_from
+from lcpr_ros.params import RENAMED, Settings, all_leaves, settings_from, settings_from_file
 from ros_common.errors import ConfigError
 from ros_common.params import build, leaves, to_yaml
 from ros_common.ros_params import RuntimeParameters, declare
@@ -197,3 +197,34 @@ def test_the_ouster_and_hesai_presets_are_accepted_parameter_values(preset: str)
     values["model.lidar"] = preset
     got = settings_from(values).detector.model.range_preset
     assert got.fov_up_deg > got.fov_down_deg and got.height in (64, 128)
+
+
+def test_the_old_name_map_model_still_sets_the_descriptor_tag_with_a_warning(context) -> None:
+    node = rclpy.create_node("lcpr", context=context, parameter_overrides=[Parameter("map.model", value="mine")])
+    try:
+        values = declare(node, all_leaves(), renamed=RENAMED)
+        assert values["map.descriptor_tag"] == "mine"
+        assert node.get_parameter("map.descriptor_tag").value == "mine"
+        assert settings_from(values).detector.map.descriptor_tag == "mine"
+    finally:
+        node.destroy_node()
+
+
+def test_the_old_and_the_new_name_given_different_values_refuse_the_start(context) -> None:
+    overrides = [Parameter("map.model", value="mine"), Parameter("map.descriptor_tag", value="theirs")]
+    node = rclpy.create_node("lcpr", context=context, parameter_overrides=overrides)
+    try:
+        with pytest.raises(ConfigError, match="map.model='mine' and map.descriptor_tag='theirs' disagree"):
+            declare(node, all_leaves(), renamed=RENAMED)
+    finally:
+        node.destroy_node()
+
+
+def test_a_params_file_with_the_old_name_is_read_with_a_warning_and_a_clash_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "old.yaml"
+    path.write_text("/**:\n  ros__parameters:\n    map:\n      model: mine\n")
+    with pytest.warns(FutureWarning, match="map.model is deprecated, use map.descriptor_tag"):
+        assert settings_from_file(path).detector.map.descriptor_tag == "mine"
+    path.write_text("/**:\n  ros__parameters:\n    map:\n      model: mine\n      descriptor_tag: theirs\n")
+    with pytest.raises(ConfigError, match="disagree"):
+        settings_from_file(path)
