@@ -2,7 +2,7 @@
 # Why VSeq2PC training trailed the network-free feature match, and what fixes it: short stage-2 runs
 # (1 stage-1 epoch + 4 joint epochs of 3520 queries, the same budget each) on the six training drives
 # of vseq2pc_train_synth.sh, compared by Recall@1 on the validation drive (seed 23) only. The held-out
-# drive (seed 7) is not read here. About 9 minutes per variant on 2 idle cores.
+# drive (seed 7) is not read here. About 9 minutes per variant on 2 idle cores (STUDY_ALL=1 adds a fifth).
 #
 #   bash benchmarks/vseq2pc_loss_study.sh [OUT]   (default OUT=out/vseq2pc; the caches of step 1 of
 #                                                   vseq2pc_train_synth.sh must be there)
@@ -21,14 +21,17 @@ run() {  # name, extra options
   $PY -m lcpr_core.vseq2pc.training.cli "${COMMON[@]}" --out "$OUT/study_$name" "$@"
 }
 run release --negatives 1                                          # the release's loss (bundled weights' recipe)
-run ranking --negatives 1 --ranking-weight 1                       # + the ranking term
-run ranking_hard --negatives 2 --ranking-weight 1 --negative-max-radius 60   # + negatives 20..60 m
+run mixed_bn --negatives 1 --mixed-batch-norm                      # batch norm as eval mode sees it
+run mixed_bn_ranking --negatives 1 --mixed-batch-norm --ranking-weight 1   # + the ranking term
+run ranking --negatives 1 --ranking-weight 1                       # the ranking term alone
+[ -n "${STUDY_ALL:-}" ] && run ranking_hard --negatives 2 --mixed-batch-norm --ranking-weight 1 \
+    --negative-max-radius 60                                       # + negatives from 20..60 m
 
 $PY - "$OUT" <<'PY'
 import json, sys
 from pathlib import Path
 print(f"{'variant':<14} " + " ".join(f"R@1 ep{e}" for e in range(1, 5)) + "   best")
-for run in ("release", "ranking", "ranking_hard"):
+for run in ("release", "mixed_bn", "mixed_bn_ranking", "ranking", "ranking_hard"):
     path = Path(sys.argv[1]) / f"study_{run}" / "history.json"
     if not path.is_file():
         continue

@@ -175,3 +175,24 @@ def test_a_run_with_the_ranking_term_picks_its_best_epoch_by_validation_recall(t
         tiny(tmp_path, select="recall_at_1")
     with pytest.raises(ValueError, match="select='best'"):
         tiny(tmp_path, select="best")
+
+
+def test_one_pass_of_the_shared_tower_equals_two_in_eval_mode_and_mixes_the_batch_statistics_in_training() -> None:
+    torch.manual_seed(0)
+    _, desc = seeded_models(0)
+    f_seq, f_img = torch.rand(3, 12, 90), torch.rand(3, 12, 90)
+    slices = torch.rand(16, 12, 360) * 2.0  # scans unlike the camera features: their batch statistics differ
+    desc.eval()
+    d_seq, d_scan = desc.descriptors(f_seq, f_img, slices)
+    assert torch.allclose(d_seq, desc.sequence_descriptor(f_seq, f_img), atol=1e-6)
+    assert torch.allclose(d_scan, desc.scan_descriptor(slices), atol=1e-6)
+    desc.train()
+    mixed = desc.descriptors(f_seq, f_img, slices)[0]
+    apart = desc.sequence_descriptor(f_seq, f_img)
+    assert not torch.allclose(mixed, apart, atol=1e-3)
+
+
+def test_a_run_with_mixed_batch_norm_trains_and_validates(tmp_path: Path) -> None:
+    run = train(tiny(tmp_path, mixed_batch_norm=True, ranking_weight=0.5))
+    assert all(np.isfinite(h["train_loss"]) for h in run.history)
+    assert run.history[-1]["val_max_f1"] is not None

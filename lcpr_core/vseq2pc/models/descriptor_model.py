@@ -100,6 +100,25 @@ class DescriptorModel(nn.Module):
             means.append(base.mean(dim=2))
         return torch.cat(means, dim=1)
 
+    def descriptors(self, f_seq: torch.Tensor, f_img: torch.Tensor, slices: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Both kinds in one pass of the shared tower: (B x 288 sequence, M x 288 scan descriptors).
+
+        Equal to :meth:`sequence_descriptor` and :meth:`scan_descriptor` in eval mode. In training mode the
+        shared tower's batch norm then normalises sequences and scans with the statistics of both together,
+        as its running statistics (what eval mode uses) do; called apart, each kind gets its own.
+        """
+        pad = (self.pad, self.pad)
+        residual, base, scans = F.pad(f_seq - f_img, pad), F.pad(f_img, pad), slices  # B / B / M x 12 x 360
+        seq_means, scan_means = [], []
+        for stage, stage_seq in zip(self._stages(), self._stages("_seq"), strict=True):
+            residual = stage_seq(residual)
+            both = stage(torch.cat([base, scans]))  # (B + M) x C x S
+            base, scans = both[: len(base)] + residual, both[len(base) :]
+            seq_means.append(base.mean(dim=2))
+            scan_means.append(scans.mean(dim=2))
+        return torch.cat(seq_means, dim=1), torch.cat(scan_means, dim=1)
+
     def logit(self, d_seq: torch.Tensor, d_scan: torch.Tensor) -> torch.Tensor:
         """B x 288, B x 288 -> B logits (broadcasts over leading dimensions)."""
         return self.linear((d_seq - d_scan).abs()).squeeze(-1)

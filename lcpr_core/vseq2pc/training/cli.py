@@ -36,6 +36,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="share of positives taken from another pass when there is one")
     p.add_argument("--negative-max-radius", type=float, default=d.pairs.negative_max_radius,
                    help="draw negatives from 20 m..this radius of the query when it has any there (hard negatives)")
+    p.add_argument("--mixed-batch-norm", action=argparse.BooleanOptionalAction, default=d.mixed_batch_norm,
+                   help="scans and sequences pass the shared tower together in training, so its batch norm uses "
+                        "the statistics eval mode uses (default off: the release's separate passes)")
     p.add_argument("--ranking-weight", type=float, default=d.ranking_weight,
                    help="weight of the ranking term (positives above negatives, softmax); 0 = the release's loss")
     p.add_argument("--select", choices=SELECT_METRICS, default=d.select,
@@ -66,7 +69,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             in_batch=args.in_batch, straight_through_clamp=args.straight_through_clamp,
             pairs=TrainPairConfig(negatives=args.negatives, revisit_fraction=args.revisit_fraction,
                                   negative_max_radius=args.negative_max_radius),
-            ranking_weight=args.ranking_weight, select=args.select,
+            ranking_weight=args.ranking_weight, select=args.select, mixed_batch_norm=args.mixed_batch_norm,
             seed=args.seed, threads=args.threads, progress=not args.no_progress, resume=args.resume,
             init_sequence=args.init_sequence, init_descriptor=args.init_descriptor,
         )

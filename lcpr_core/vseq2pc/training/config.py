@@ -42,6 +42,7 @@ class TrainConfig:
     seq_betas: tuple[float, float] = (0.9, 0.95)
     desc_lr: float = 0.002
     margin: float = 0.2
+    mixed_batch_norm: bool = False  # scans and sequences share the tower's batch statistics (loss.describe)
     ranking_weight: float = 0.0  # weight of the ranking term (training.loss.ranking_loss); 0 = the release's loss
     select: str = "max_f1"  # SELECT_METRICS
     in_batch: bool = True  # score every query of a batch against every sampled scan of the batch

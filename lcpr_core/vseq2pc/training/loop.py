@@ -112,7 +112,8 @@ def _pair_loss(run: Run, data: TrainData, queries: np.ndarray, pairs: PairSet) -
     if run.config.in_batch:
         return _in_batch_loss(run, data, queries, pairs.scan)
     scans = data.lidar[torch.from_numpy(pairs.scan)].view(len(queries), s, 12, -1)
-    logits, sq = pair_logits(run.seq, run.desc, data.frames(queries), scans)
+    logits, sq = pair_logits(run.seq, run.desc, data.frames(queries), scans,
+                             mixed_batch_norm=run.config.mixed_batch_norm)
     labels = torch.from_numpy(pairs.label.astype(np.float32)).view(len(queries), s)
     loss = place_loss(logits, sq, labels, margin=run.config.margin)
     if run.config.ranking_weight > 0:
@@ -125,7 +126,8 @@ def _in_batch_loss(run: Run, data: TrainData, queries: np.ndarray, scans: np.nda
     """Every query of the batch against every sampled scan of the batch; pairs closer than 3 m or farther
     than 20 m count (the others have no clear label), positives and negatives weighted half each."""
     scans = np.unique(scans)
-    logits, sq = cross_logits(run.seq, run.desc, data.frames(queries), data.lidar[torch.from_numpy(scans)])
+    logits, sq = cross_logits(run.seq, run.desc, data.frames(queries), data.lidar[torch.from_numpy(scans)],
+                              mixed_batch_norm=run.config.mixed_batch_norm)
     dist = planar_distances(data.positions[queries], data.positions[scans])
     positive, negative = dist < POSITIVE_RADIUS, dist > NEGATIVE_RADIUS
     weights = np.zeros(dist.shape)

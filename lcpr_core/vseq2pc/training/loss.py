@@ -8,27 +8,40 @@ import torch
 import torch.nn.functional as F
 
 from ..models import DescriptorModel, SequenceModel
-from ..net import scan_slice_descriptors
+from ..net import scan_slice_descriptors, slice_tensor
 from ..retrieval import head_logits
 
 log = logging.getLogger("lcpr_core.vseq2pc.training")
 
 # ---------------------------------------------------------------------- model pieces
-def pair_logits(seq: SequenceModel, desc: DescriptorModel, frames: torch.Tensor, lidar: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor]:
+def describe(seq: SequenceModel, desc: DescriptorModel, frames: torch.Tensor, lidar: torch.Tensor, *,
+             mixed_batch_norm: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    """B x 4 x 12 x 90 sequences and M x 12 x 360 scans -> B x 288 and M x 8 x 288 descriptors (gradients kept).
+
+    ``mixed_batch_norm``: sequences and scan slices pass the shared tower together
+    (:meth:`DescriptorModel.descriptors`), so training normalises them as eval mode does."""
+    f_seq = seq(frames)
+    if not mixed_batch_norm:
+        return desc.sequence_descriptor(f_seq, frames[:, 0]), scan_slice_descriptors(desc, lidar)
+    m = lidar.shape[0]
+    d_seq, d_slices = desc.descriptors(f_seq, frames[:, 0], slice_tensor(lidar).reshape(m * 8, *lidar.shape[1:]))
+    return d_seq, d_slices.view(m, 8, -1)
+
+
+def pair_logits(seq: SequenceModel, desc: DescriptorModel, frames: torch.Tensor, lidar: torch.Tensor, *,
+                mixed_batch_norm: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """B x 4 x 12 x 90 sequences and B x S x 12 x 360 scans (S per sequence) -> max-slice logits (B, S) and
     the squared descriptor distance to the best slice (B, S)."""
     b, s = lidar.shape[:2]
-    d_seq = desc.sequence_descriptor(seq(frames), frames[:, 0])  # B x 288
-    d_scan = scan_slice_descriptors(desc, lidar.reshape(b * s, *lidar.shape[2:])).view(b, s, 8, -1)
-    return _best_slice(desc, d_seq, d_scan)
+    d_seq, d_scan = describe(seq, desc, frames, lidar.reshape(b * s, *lidar.shape[2:]),
+                             mixed_batch_norm=mixed_batch_norm)
+    return _best_slice(desc, d_seq, d_scan.view(b, s, 8, -1))
 
 
-def cross_logits(seq: SequenceModel, desc: DescriptorModel, frames: torch.Tensor, lidar: torch.Tensor
-                 ) -> tuple[torch.Tensor, torch.Tensor]:
+def cross_logits(seq: SequenceModel, desc: DescriptorModel, frames: torch.Tensor, lidar: torch.Tensor, *,
+                 mixed_batch_norm: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """B sequences against every one of M scans (M x 12 x 360) -> logits and squared distances (B, M)."""
-    d_seq = desc.sequence_descriptor(seq(frames), frames[:, 0])  # B x 288
-    d_scan = scan_slice_descriptors(desc, lidar)  # M x 8 x 288
+    d_seq, d_scan = describe(seq, desc, frames, lidar, mixed_batch_norm=mixed_batch_norm)  # B x 288, M x 8 x 288
     return _best_slice(desc, d_seq, d_scan.expand(len(d_seq), -1, -1, -1))
 
 
