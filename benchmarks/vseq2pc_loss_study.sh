@@ -16,6 +16,7 @@ COMMON=(--cache "${TRAIN[@]}" --val-cache "$OUT/val_seed23.npz" --pretrain-epoch
 
 run() {  # name, extra options
   local name=$1; shift
+  [ -n "${SUMMARY_ONLY:-}" ] && return   # SUMMARY_ONLY=1: the table and figure of the runs already there
   [ -f "$OUT/study_$name/history.json" ] && grep -q '"epoch": 4' "$OUT/study_$name/history.json" && return
   echo "== $name: $*"
   $PY -m lcpr_core.vseq2pc.training.cli "${COMMON[@]}" --out "$OUT/study_$name" "$@"
@@ -30,12 +31,31 @@ run ranking --negatives 1 --ranking-weight 1                       # the ranking
 $PY - "$OUT" <<'PY'
 import json, sys
 from pathlib import Path
-print(f"{'variant':<14} " + " ".join(f"R@1 ep{e}" for e in range(1, 5)) + "   best")
+
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+out = Path(sys.argv[1])
+fig = Figure(figsize=(9, 3.6), dpi=100)
+FigureCanvasAgg(fig)
+axes = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
+print(f"{'variant':<18} " + " ".join(f"R@1 ep{e}" for e in range(1, 5)) + "   best   max F1 (1:100) per epoch")
 for run in ("release", "mixed_bn", "mixed_bn_ranking", "ranking", "ranking_hard"):
-    path = Path(sys.argv[1]) / f"study_{run}" / "history.json"
+    path = out / f"study_{run}" / "history.json"
     if not path.is_file():
         continue
     rows = [h for h in json.loads(path.read_text())["history"] if h["stage"] == 2]
     r1 = [h.get("val_recall_at_1") or 0.0 for h in rows]
-    print(f"{run:<14} " + " ".join(f"{r:7.3f}" for r in r1) + f"   {max(r1):.3f}")
+    f1 = [h.get("val_protocol_max_f1") or 0.0 for h in rows]
+    print(f"{run:<18} " + " ".join(f"{r:7.3f}" for r in r1) + f"   {max(r1):.3f}  " + " ".join(f"{f:.3f}" for f in f1))
+    epochs = [h["epoch"] for h in rows]
+    axes[0].plot(epochs, r1, "o-", label=run)
+    axes[1].plot(epochs, f1, "o-", label=run)
+for ax, what in zip(axes, ("Recall@1 (loop queries)", "max F1 (pairs 1:100)")):
+    ax.set(xlabel="stage-2 epoch", ylabel=what, title=f"validation drive: {what}", ylim=(0, 1))
+    ax.grid(alpha=0.3)
+axes[0].legend()
+fig.tight_layout()
+fig.savefig(out / "loss_study.png")
+print(f"wrote {out / 'loss_study.png'}")
 PY
