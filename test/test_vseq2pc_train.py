@@ -192,7 +192,13 @@ def test_one_pass_of_the_shared_tower_equals_two_in_eval_mode_and_mixes_the_batc
     assert not torch.allclose(mixed, apart, atol=1e-3)
 
 
-def test_a_run_with_mixed_batch_norm_trains_and_validates(tmp_path: Path) -> None:
-    run = train(tiny(tmp_path, mixed_batch_norm=True, ranking_weight=0.5))
+def test_a_run_with_mixed_batch_norm_ranking_and_reconstruction_trains_and_validates(tmp_path: Path) -> None:
+    run = train(tiny(tmp_path, mixed_batch_norm=True, ranking_weight=0.5, reconstruction_weight=2.0))
     assert all(np.isfinite(h["train_loss"]) for h in run.history)
     assert run.history[-1]["val_max_f1"] is not None
+
+
+@pytest.mark.parametrize("name", ["ranking_weight", "reconstruction_weight"])
+def test_a_negative_loss_weight_is_refused_naming_it(tmp_path: Path, name: str) -> None:
+    with pytest.raises(ValueError, match=f"{name}=-1"):
+        tiny(tmp_path, **{name: -1.0})

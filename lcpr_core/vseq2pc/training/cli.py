@@ -39,6 +39,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mixed-batch-norm", action=argparse.BooleanOptionalAction, default=d.mixed_batch_norm,
                    help="scans and sequences pass the shared tower together in training, so its batch norm uses "
                         "the statistics eval mode uses (default off: the release's separate passes)")
+    p.add_argument("--reconstruction-weight", type=float, default=d.reconstruction_weight,
+                   help="keep stage 1's reconstruction MSE in stage 2 with this weight (0 = the release: F_seq may "
+                        "then collapse to 0 and the sequence be ignored)")
     p.add_argument("--ranking-weight", type=float, default=d.ranking_weight,
                    help="weight of the ranking term (positives above negatives, softmax); 0 = the release's loss")
     p.add_argument("--select", choices=SELECT_METRICS, default=d.select,
@@ -69,7 +72,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             in_batch=args.in_batch, straight_through_clamp=args.straight_through_clamp,
             pairs=TrainPairConfig(negatives=args.negatives, revisit_fraction=args.revisit_fraction,
                                   negative_max_radius=args.negative_max_radius),
-            ranking_weight=args.ranking_weight, select=args.select, mixed_batch_norm=args.mixed_batch_norm,
+            ranking_weight=args.ranking_weight, reconstruction_weight=args.reconstruction_weight,
+            select=args.select, mixed_batch_norm=args.mixed_batch_norm,
             seed=args.seed, threads=args.threads, progress=not args.no_progress, resume=args.resume,
             init_sequence=args.init_sequence, init_descriptor=args.init_descriptor,
         )

@@ -43,6 +43,7 @@ class TrainConfig:
     desc_lr: float = 0.002
     margin: float = 0.2
     mixed_batch_norm: bool = False  # scans and sequences share the tower's batch statistics (loss.describe)
+    reconstruction_weight: float = 0.0  # stage 1's MSE kept in stage 2 with this weight; 0 = the release
     ranking_weight: float = 0.0  # weight of the ranking term (training.loss.ranking_loss); 0 = the release's loss
     select: str = "max_f1"  # SELECT_METRICS
     in_batch: bool = True  # score every query of a batch against every sampled scan of the batch
@@ -69,8 +70,9 @@ class TrainConfig:
             raise InvalidValueError(f"val_fraction={self.val_fraction}; expected a share in [0, 1)")
         if self.queries_per_epoch is not None and self.queries_per_epoch < 1:
             raise InvalidValueError(f"queries_per_epoch={self.queries_per_epoch}; expected None or >= 1")
-        if self.ranking_weight < 0:
-            raise InvalidValueError(f"ranking_weight={self.ranking_weight}; expected >= 0")
+        for name in ("ranking_weight", "reconstruction_weight"):
+            if getattr(self, name) < 0:
+                raise InvalidValueError(f"{name}={getattr(self, name)}; expected >= 0")
         if self.select not in SELECT_METRICS:
             raise InvalidValueError(f"select={self.select!r}; accepted: {', '.join(SELECT_METRICS)}")
         if self.select == "recall_at_1" and self.val_cache is None:

@@ -74,7 +74,11 @@ def joint_epoch(run: Run, data: TrainData, epoch: int, rng: np.random.Generator)
     assert run.seq_opt is not None and run.desc_opt is not None
 
     def loss(q: np.ndarray) -> torch.Tensor:
-        return _pair_loss(run, data, q, training_pairs(data.positions, q, data.scans, config=run.config.pairs, rng=rng))
+        value = _pair_loss(run, data, q, training_pairs(data.positions, q, data.scans, config=run.config.pairs,
+                                                         rng=rng))
+        if run.config.reconstruction_weight > 0:  # stage 1's task kept: F_seq stays the LiDAR's forward view
+            value = value + run.config.reconstruction_weight * F.mse_loss(run.seq(data.frames(q)), data.target(q))
+        return value
 
     return _epoch(run, data, epoch, rng, stage=2, loss=loss, optimisers=(run.seq_opt, run.desc_opt))
 

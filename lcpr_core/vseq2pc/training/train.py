@@ -21,6 +21,16 @@ ended with F_seq == 0 everywhere, so the network ignored the sequence), and no g
 could bring it back. Training therefore lets gradients through the clamp (straight-through;
 values unchanged); ``--no-straight-through-clamp`` trains with the plain clamp.
 
+Batch norm: the descriptor model's tower is shared by scan slices and by the camera stream
+of the sequence descriptor. Called apart (the release), training normalises each kind with
+its own batch statistics, while eval mode normalises both with one set of running
+statistics; the network learned under a normalisation it never meets at inference (the
+earlier bundled weights: validation Recall@1 0.11 in eval mode, 0.22 with batch statistics).
+``mixed_batch_norm`` passes both kinds through the tower together, so training sees what
+eval sees. ``ranking_weight`` adds a ranking term (each query's positives above its
+negatives, a softmax over the batch's max-slice logits), which is what Recall@1 asks for;
+benchmarks/vseq2pc_loss_study.sh measures both on the validation drive.
+
 Several drives train together (``--cache A.npz B.npz ...``): their frames are laid side by
 side ``DRIVE_SPACING_M`` apart, so a pair across drives is always a negative.
 
