@@ -4,7 +4,7 @@
 # each drive is a city of its own. Trained vs untrained vs a network-free feature match. These
 # are the commands behind the figures in README ("VSeq2PC") and the bundled
 # weights/vseq2pc_synth_*.pth. About 45 minutes on 2 idle cores (drives ~2 min each, training
-# ~25 min, evaluation ~1 min).
+# ~30 min, evaluation ~2 min).
 #
 #   bash benchmarks/vseq2pc_train_synth.sh [OUT] [--bundle]   (default OUT=out/vseq2pc)
 #
@@ -26,12 +26,14 @@ for drive in "train_seed5 5 1000" "train_seed11 11 1000" "train_seed13 13 1000" 
   rm -rf "$OUT/$1.bag"   # several GB of raw images; the cache is all training needs
 done
 
-# 2. stage 1 (reconstruction, 1 epoch) + stage 2 (joint, 12 epochs of 3520 queries, in-batch pairs, batch norm
-#    with the statistics eval mode uses, the ranking term; benchmarks/vseq2pc_loss_study.sh shows why), the
-#    epoch with the best Recall@1 on the validation drive kept as best_*
+# 2. stage 1 (reconstruction, 1 epoch) + stage 2 (joint, 12 epochs of 3520 queries, in-batch pairs, batch
+#    norm with the statistics eval mode uses, the ranking term, stage 1's reconstruction kept; README
+#    "VSeq2PC" and benchmarks/vseq2pc_loss_study.sh say why); the epoch with the best Recall@1 on the
+#    validation drive is kept as best_*
 $PY -m lcpr_core.vseq2pc.training.cli --cache "$OUT"/train_seed{5,11,13,17,19,29}.npz --val-cache "$OUT/val_seed23.npz" \
     --out "$OUT/run" --pretrain-epochs 1 --epochs 12 --batch 32 --queries-per-epoch 3520 --seq-base-lr 8e-3 \
-    --seq-warmup-epochs 0.5 --negatives 1 --mixed-batch-norm --ranking-weight 1 --select recall_at_1 --no-progress
+    --seq-warmup-epochs 0.5 --negatives 1 --mixed-batch-norm --ranking-weight 1 --reconstruction-weight 10 \
+    --select recall_at_1 --no-progress
 
 # 3. the paper's evaluation on the held-out drive
 $PY -m lcpr_core.vseq2pc.evaluate --cache "$OUT/heldout_seed7.npz" --weights-dir "$OUT/run" --which best \
