@@ -89,16 +89,10 @@ class DescriptorModel(nn.Module):
 
         The residual stream (conv*_seq) reads F_seq - F_img; the base stream (conv*,
         shared with scans) reads F_img and adds the residual stream's output after
-        every stage.
+        every stage (:meth:`descriptors` with no scans).
         """
-        pad = (self.pad, self.pad)
-        residual, base = F.pad(f_seq - f_img, pad), F.pad(f_img, pad)
-        means = []
-        for stage, stage_seq in zip(self._stages(), self._stages("_seq"), strict=True):
-            residual = stage_seq(residual)
-            base = stage(base) + residual
-            means.append(base.mean(dim=2))
-        return torch.cat(means, dim=1)
+        no_scans = f_img.new_zeros(0, f_img.shape[1], 2 * self.pad + f_img.shape[2])
+        return self.descriptors(f_seq, f_img, no_scans)[0]
 
     def descriptors(self, f_seq: torch.Tensor, f_img: torch.Tensor, slices: torch.Tensor
                     ) -> tuple[torch.Tensor, torch.Tensor]:

@@ -118,12 +118,7 @@ def _pair_loss(run: Run, data: TrainData, queries: np.ndarray, pairs: PairSet) -
     scans = data.lidar[torch.from_numpy(pairs.scan)].view(len(queries), s, 12, -1)
     logits, sq = pair_logits(run.seq, run.desc, data.frames(queries), scans,
                              mixed_batch_norm=run.config.mixed_batch_norm)
-    labels = torch.from_numpy(pairs.label.astype(np.float32)).view(len(queries), s)
-    loss = place_loss(logits, sq, labels, margin=run.config.margin)
-    if run.config.ranking_weight > 0:
-        dist = torch.from_numpy(pairs.distance).view(len(queries), s)
-        loss = loss + run.config.ranking_weight * ranking_loss(logits, dist < POSITIVE_RADIUS, dist > NEGATIVE_RADIUS)
-    return loss
+    return _stage2_loss(run, logits, sq, pairs.distance.reshape(len(queries), s))
 
 
 def _in_batch_loss(run: Run, data: TrainData, queries: np.ndarray, scans: np.ndarray) -> torch.Tensor:
@@ -133,18 +128,23 @@ def _in_batch_loss(run: Run, data: TrainData, queries: np.ndarray, scans: np.nda
     logits, sq = cross_logits(run.seq, run.desc, data.frames(queries), data.lidar[torch.from_numpy(scans)],
                               mixed_batch_norm=run.config.mixed_batch_norm)
     dist = planar_distances(data.positions[queries], data.positions[scans])
-    positive, negative = dist < POSITIVE_RADIUS, dist > NEGATIVE_RADIUS
     weights = np.zeros(dist.shape)
-    for mask in (positive, negative):
+    for mask in (dist < POSITIVE_RADIUS, dist > NEGATIVE_RADIUS):
         if mask.any():
             weights[mask] = 1.0 / mask.sum()
     weights /= weights.sum()
+    return _stage2_loss(run, logits, sq, dist, weights=torch.from_numpy(weights.astype(np.float32)))
+
+
+def _stage2_loss(run: Run, logits: torch.Tensor, sq: torch.Tensor, dist: np.ndarray, *,
+                 weights: torch.Tensor | None = None) -> torch.Tensor:
+    """The place loss of pairs ``dist`` metres apart (labels by :func:`place_label`), plus the ranking term
+    over their positives (< 3 m) and negatives (> 20 m) when ``ranking_weight`` is set."""
     labels = torch.from_numpy(place_label(dist).astype(np.float32))
-    loss = place_loss(logits, sq, labels, margin=run.config.margin,
-                      weights=torch.from_numpy(weights.astype(np.float32)))
+    loss = place_loss(logits, sq, labels, margin=run.config.margin, weights=weights)
     if run.config.ranking_weight > 0:
         loss = loss + run.config.ranking_weight * ranking_loss(
-            logits, torch.from_numpy(positive), torch.from_numpy(negative))
+            logits, torch.from_numpy(dist < POSITIVE_RADIUS), torch.from_numpy(dist > NEGATIVE_RADIUS))
     return loss
 
 
