@@ -123,22 +123,22 @@ def unique(found: Sequence[Leaf]) -> list[Leaf]:
     return list(found)
 
 
-def renamed_value(old: str, new: str, *, old_value: Any, new_value: Any, default: Any, where: str) -> Any:
-    """The value of parameter ``new`` when the deprecated name ``old`` may have been given too.
+def renamed_value(old: str, new: str, *, old_value: Any, new_value: Any, default: Any,
+                  where: str) -> tuple[Any, str | None]:
+    """The value of parameter ``new`` when the deprecated name ``old`` may have been given too, and the
+    deprecation message to show (None when the old name was not used).
 
     ``None`` for an absent name; a name at ``default`` counts as absent. ConfigError when both were given
-    different values; a FutureWarning (shown by default) when only the old name was used.
+    different values.
     """
     old_given = old_value is not None and old_value != default
     new_given = new_value is not None and new_value != default
     if not old_given:
-        return default if new_value is None else new_value
+        return (default if new_value is None else new_value), None
     if new_given and new_value != old_value:
         raise ConfigError(f"{where}: {old}={old_value!r} and {new}={new_value!r} disagree; {old} is the old name of "
                           f"{new}: give only {new}")
-    warnings.warn(f"{where}: parameter {old} is deprecated, use {new} (took {new}={old_value!r})", FutureWarning,
-                  stacklevel=3)
-    return old_value
+    return old_value, f"{where}: parameter {old} is deprecated, use {new} (took {new}={old_value!r})"
 
 
 def read_params_file(path: str | os.PathLike[str], leaves_: Sequence[Leaf], *,
@@ -163,8 +163,10 @@ def read_params_file(path: str | os.PathLike[str], leaves_: Sequence[Leaf], *,
     given = _flatten(sections[0]["ros__parameters"])
     for old, new in (renamed or {}).items():
         if old in given:
-            given[new] = renamed_value(old, new, old_value=given.pop(old), new_value=given.get(new),
-                                       default=values[new], where=f"parameter file {where}")
+            given[new], message = renamed_value(old, new, old_value=given.pop(old), new_value=given.get(new),
+                                                default=values[new], where=f"parameter file {where}")
+            if message:
+                warnings.warn(message, FutureWarning, stacklevel=2)  # FutureWarning: shown by default
     unknown = sorted(set(given) - set(values))
     if unknown:
         raise ConfigError(f"parameter file {where} names unknown parameters {unknown}")

@@ -1,7 +1,6 @@
 """Declaring the config's parameters on an rclpy node and validating changes at run time."""
 from __future__ import annotations
 
-import warnings
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -58,12 +57,10 @@ def declare(node: Node, leaves: Sequence[Leaf], *, renamed: Mapping[str, str] | 
             raise ConfigError(f"parameter {leaf.name}: {err}") from err
         if leaf.name in old_values:
             old, old_value = old_values[leaf.name]
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always")
-                renamed_value(old, leaf.name, old_value=old_value, new_value=param.value,
-                              default=leaf.to_ros(leaf.default), where=f"node {node.get_name()}")
-            for warning in caught:
-                node.get_logger().warning(str(warning.message))
+            _, message = renamed_value(old, leaf.name, old_value=old_value, new_value=param.value,
+                                       default=leaf.to_ros(leaf.default), where=f"node {node.get_name()}")
+            if message:
+                node.get_logger().warning(message)
         values[leaf.name] = leaf.to_python(param.value)
     return values
 
