@@ -1,0 +1,206 @@
+"""Which LCPR configuration generalises best for a CPU training budget (issue #14): a fixed plan.
+
+    python benchmarks/lcpr_config_search.py [--corpus out/corpus] [--out out/config_search]
+                                            [--budget-min 120]
+
+Trains each configuration of :data:`PLAN` on the 12 training cities of ``benchmarks/lcpr_corpus.sh``
+(the bundled recipe's augmentations), and at each of its checkpoint epochs evaluates the weights of
+that epoch on the two *validation* cities (``lcpr_eval --no-verify --no-scan-context``, online
+protocol). The test cities are not read. Writes ``search.json`` (every point: configuration, epoch,
+cumulative training seconds, validation Recall@1 and max F1 per city) and ``config_search.png``
+(mean validation Recall@1 against training time, one line per configuration), and prints the table
+with medians of nothing: every point is one run, seed 0.
+
+Training time is what ``lcpr_train`` records per epoch (the steps and its per-epoch validation
+pass); building a configuration's preprocessed cache is reported beside it, once per input size.
+A stage whose start would pass ``--budget-min`` (wall time of the whole search, evaluations
+included) is skipped and listed as such. Stages resume: a configuration's later checkpoints
+continue from its earlier ones (``lcpr_train --resume``), so the plan's order sets the curve.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+AUGMENT = ("--augment-yaw", "0.5", "--augment-lighting", "0.5", "--brightness", "0.3", "1.6",
+           "--augment-camera-drop", "0.2")
+VALIDATION = ("val_grid_s3", "val_k00_s45")
+
+
+@dataclass(frozen=True)
+class Config:
+    name: str
+    image: tuple[int, int]
+    ranges: tuple[int, int]
+    width: float
+    lr: float
+    step_epochs: int
+    gamma: float
+
+    def train_args(self) -> list[str]:
+        return ["--image-size", *map(str, self.image), "--range-size", *map(str, self.ranges),
+                "--width", str(self.width), "--lr", str(self.lr), "--step-epochs", str(self.step_epochs),
+                "--gamma", str(self.gamma)]
+
+    @property
+    def cache_name(self) -> str:
+        return f"cache_{self.image[0]}x{self.image[1]}_{self.ranges[0]}x{self.ranges[1]}"
+
+
+CPU = Config("cpu preset (64x192, 16x288, w 0.25, lr 3e-4)", (64, 192), (16, 288), 0.25, 3e-4, 6, 0.8)
+FAST_LR = Config("cpu preset, lr 1e-3 (x0.7 / 4 epochs)", (64, 192), (16, 288), 0.25, 1e-3, 4, 0.7)
+WIDE = Config("width 0.5 (64x192, 16x288)", (64, 192), (16, 288), 0.5, 3e-4, 6, 0.8)
+LARGE = Config("larger inputs (96x288, 32x384, w 0.25)", (96, 288), (32, 384), 0.25, 3e-4, 6, 0.8)
+
+# (configuration, train until this epoch, then evaluate); fixed before any result was seen.
+PLAN: tuple[tuple[Config, int], ...] = (
+    (CPU, 5), (CPU, 10), (CPU, 20),
+    (FAST_LR, 5), (FAST_LR, 10),
+    (WIDE, 5), (WIDE, 10),
+    (LARGE, 5), (LARGE, 10),
+    (CPU, 30),
+)
+
+
+def run(cmd: list[str]) -> None:
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise SystemExit(f"failed ({proc.returncode}): {' '.join(cmd)}\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
+
+
+def slug(config: Config) -> str:
+    return "".join(c if c.isalnum() else "_" for c in config.name)[:48].strip("_")
+
+
+def evaluate(py: str, bag: Path, weights: Path, out: Path) -> dict[str, float]:
+    run([py, "-m", "lcpr_ros.evaluate", str(bag), "--weights", str(weights), "--threads", "2", "--quiet",
+         "--no-verify", "--no-scan-context", "--out", str(out)])
+    method = json.loads((out / "report.json").read_text())["methods"][0]
+    online = method["online"]
+    return {"recall@1": float(online["recall_at"]["1"]), "max_f1": float(online.get("max_f1") or 0.0)}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--corpus", type=Path, default=Path("out/corpus"))
+    p.add_argument("--out", type=Path, default=Path("out/config_search"))
+    p.add_argument("--budget-min", type=float, default=120.0, help="wall-clock budget of the search (<= 120)")
+    p.add_argument("--queries-per-epoch", type=int, default=256)
+    args = p.parse_args()
+    if not 0 < args.budget_min <= 120:
+        raise SystemExit(f"--budget-min {args.budget_min}: the search is a CPU budget of at most 120 minutes")
+    py = sys.executable
+    train_bags = sorted(str(b) for b in args.corpus.glob("train_*.bag"))
+    val_bags = [args.corpus / f"{name}.bag" for name in VALIDATION]
+    missing = [str(b) for b in val_bags if not b.is_dir()]
+    if len(train_bags) < 12 or missing:
+        raise SystemExit(f"{args.corpus}: needs 12 train_*.bag (found {len(train_bags)}) and {VALIDATION} "
+                         f"(missing {missing}); run benchmarks/lcpr_corpus.sh first")
+    args.out.mkdir(parents=True, exist_ok=True)
+    result_path = args.out / "search.json"
+    cpu = _cpu_model()
+    points: list[dict] = []
+    skipped: list[str] = []
+    start = time.perf_counter()
+    from tqdm import tqdm
+
+    for config, epochs in tqdm(PLAN, desc="search", unit="stage"):
+        elapsed_min = (time.perf_counter() - start) / 60
+        if elapsed_min >= args.budget_min:
+            skipped.append(f"{config.name} to epoch {epochs}")
+            continue
+        run_dir = args.out / slug(config)
+        resume = (run_dir / "last.pth").is_file()
+        run([py, "-m", "lcpr_core.training.cli", *train_bags, "--out", str(run_dir),
+             "--cache", str(args.out / config.cache_name), "--epochs", str(epochs),
+             "--queries-per-epoch", str(args.queries_per_epoch), "--batch", "4", "--fractions", "0.8", "0.1", "0.1",
+             "--threads", "2", "--seed", "0", "--quiet", *config.train_args(), *AUGMENT,
+             *(["--resume"] if resume else [])])
+        history = json.loads((run_dir / "history.json").read_text())
+        train_s = sum(h.get("seconds", 0.0) for h in history if 0 < h["epoch"] <= epochs)
+        cache_meta = json.loads((args.out / config.cache_name / "meta.json").read_text()) \
+            if (args.out / config.cache_name / "meta.json").is_file() else {}
+        weights = args.out / f"{slug(config)}_e{epochs}.pth"
+        run([py, "-m", "lcpr_core.training.cli", "--export", str(run_dir / "last.pth"), str(weights), "--export-fp32"])
+        cities = {bag.stem: evaluate(py, bag, weights, args.out / f"eval_{slug(config)}_e{epochs}_{bag.stem}")
+                  for bag in val_bags}
+        point = {"config": config.name, "epochs": epochs, "train_s": round(train_s, 1),
+                 "cache_s": cache_meta.get("build_seconds"),
+                 "in_training_val_recall@1": next(h.get("recall@1") for h in history if h["epoch"] == epochs),
+                 "cities": cities,
+                 "mean_recall@1": sum(c["recall@1"] for c in cities.values()) / len(cities),
+                 "mean_max_f1": sum(c["max_f1"] for c in cities.values()) / len(cities)}
+        points.append(point)
+        tqdm.write(f"{config.name} epoch {epochs}: {train_s / 60:.1f} min training, validation R@1 "
+                   + ", ".join(f"{k} {v['recall@1']:.2f}" for k, v in cities.items()))
+        _write(result_path, cpu, points, skipped, time.perf_counter() - start)
+    _write(result_path, cpu, points, skipped, time.perf_counter() - start)
+    _plot(points, args.out / "config_search.png", cpu)
+    _print_table(points, skipped, cpu, time.perf_counter() - start)
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown CPU"
+
+
+def _write(path: Path, cpu: str, points: list[dict], skipped: list[str], wall_s: float) -> None:
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps({"cpu": cpu, "threads": 2, "wall_s": round(wall_s, 1), "points": points,
+                               "skipped": skipped}, indent=1))
+    tmp.replace(path)
+
+
+def _plot(points: list[dict], path: Path, cpu: str) -> None:
+    fig, ax = plt.subplots(figsize=(7.5, 4.5))
+    for name in dict.fromkeys(p["config"] for p in points):
+        pts = sorted((p["train_s"] / 60, p["mean_recall@1"], p["epochs"]) for p in points if p["config"] == name)
+        ax.plot([x for x, _, _ in pts], [y for _, y, _ in pts], "o-", label=name)
+        for x, y, e in pts:
+            ax.annotate(f"{e}", (x, y), textcoords="offset points", xytext=(3, 3), fontsize=7)
+    ax.set_xlabel(f"training time, minutes ({cpu}, 2 threads)")
+    ax.set_ylabel("Recall@1, mean of the 2 validation cities")
+    ax.set_title("LCPR configurations (labels: epochs; online protocol, no verification)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    tmp = path.with_name(path.stem + ".tmp.png")
+    fig.savefig(tmp, dpi=120)
+    plt.close(fig)
+    tmp.replace(path)
+
+
+def _print_table(points: list[dict], skipped: list[str], cpu: str, wall_s: float) -> None:
+    print(f"CPU: {cpu}, 2 threads; search wall time {wall_s / 60:.1f} min")
+    print("| configuration | epochs | training min | " + " | ".join(f"{v} R@1 / max F1" for v in VALIDATION)
+          + " | mean R@1 |")
+    print("|---|---|---|" + "---|" * len(VALIDATION) + "---|")
+    for p in points:
+        cells = " | ".join(f"{p['cities'][v]['recall@1']:.2f} / {p['cities'][v]['max_f1']:.3f}" for v in VALIDATION)
+        print(f"| {p['config']} | {p['epochs']} | {p['train_s'] / 60:.1f} | {cells} | {p['mean_recall@1']:.3f} |")
+    if points:
+        best = max(points, key=lambda p: (p["mean_recall@1"], p["mean_max_f1"]))
+        print(f"best on validation: {best['config']}, epoch {best['epochs']} "
+              f"(mean R@1 {best['mean_recall@1']:.3f}, mean max F1 {best['mean_max_f1']:.3f})")
+    for s in skipped:
+        print(f"skipped (budget): {s}")
+
+
+if __name__ == "__main__":
+    main()
