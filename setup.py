@@ -64,13 +64,13 @@ setup(
     entry_points={
         "console_scripts": [
             "lcpr_demo = lcpr_ros.demo:main",
-            "lcpr_keyframe_demo = lcpr_core.keyframe_demo:main",
-            "lcpr_quantize = lcpr_core.runtime.quantize:main",
+            "lcpr_keyframe_demo = lcpr_core.lcpr.keyframe_demo:main",
+            "lcpr_quantize = lcpr_core.lcpr.runtime.quantize:main",
             "lcpr_node = lcpr_ros.node:main",
             "lcpr_replay = lcpr_ros.replay:main",
             "lcpr_eval = lcpr_ros.evaluate:main",
             "vseq2pc_node = vseq2pc_ros.node:main",
-            "lcpr_train = lcpr_core.training.cli:main",
+            "lcpr_train = lcpr_core.lcpr.training.cli:main",
             "vseq2pc_cache = lcpr_core.vseq2pc.dataset:main",
             "vseq2pc_train = lcpr_core.vseq2pc.training.cli:main",
             "vseq2pc_eval = lcpr_core.vseq2pc.evaluate:main",

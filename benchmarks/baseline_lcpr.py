@@ -13,9 +13,9 @@ import torch
 import torch.nn.functional as F
 
 from lcpr_core import LCPR
-from lcpr_core.models.attention import MultiHeadSelfAttention
-from lcpr_core.models.fusion import Fusion
-from lcpr_core.models.vertconv import VertConv
+from lcpr_core.lcpr.models.attention import MultiHeadSelfAttention
+from lcpr_core.lcpr.models.fusion import Fusion
+from lcpr_core.lcpr.models.vertconv import VertConv
 
 
 def panorama(x: torch.Tensor, n: int) -> torch.Tensor:  # (B*N) x C x H x W -> B x C x H x N*W

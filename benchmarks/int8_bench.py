@@ -10,9 +10,9 @@ import numpy as np
 import torch
 
 from lcpr_core import Describer, ModelConfig
+from lcpr_core.lcpr.runtime.choose import cosine
+from lcpr_core.lcpr.runtime.quantize import calibration_inputs, quantize
 from lcpr_core.pretrained import default_weights
-from lcpr_core.runtime.choose import cosine
-from lcpr_core.runtime.quantize import calibration_inputs, quantize
 
 Inputs = tuple[torch.Tensor, torch.Tensor]
 

@@ -18,7 +18,7 @@ from collections import Counter
 import onnx
 from int8_bench import Int8Bench, add_arguments
 
-from lcpr_core.runtime.onnx_cache import exported_graph
+from lcpr_core.lcpr.runtime.onnx_cache import exported_graph
 
 
 def conv_groups(path: str) -> Counter[str]:

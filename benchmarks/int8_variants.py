@@ -6,7 +6,7 @@
 Each variant is calibrated on a synthetic training city (seed 1) and compared with torch fp32
 on frames of a validation city (seed 3): the lowest, 10th-percentile and median cosine. Recall@1
 on the validation city (benchmarks/precision_cost.py on a seed-3 drive) chose the default of
-``lcpr_quantize`` (lcpr_core.runtime.quantize.DEFAULT_NODES); see README "Inference paths".
+``lcpr_quantize`` (lcpr_core.lcpr.runtime.quantize.DEFAULT_NODES); see README "Inference paths".
 """
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from functools import partial
 from int8_bench import Int8Bench, add_arguments
 
 from lcpr_core import Describer
-from lcpr_core.runtime import cpu_model
+from lcpr_core.lcpr.runtime import cpu_model
 from lcpr_core.timing import median_seconds
 
 VARIANTS = {

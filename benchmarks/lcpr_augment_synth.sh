@@ -18,11 +18,11 @@ for s in 1 2 3; do
       --workers 2 --no-progress --out "$OUT/synth_s$s.bag"
 done
 
-$PY -m lcpr_core.training.cli "$OUT/synth_s1.bag" "$OUT/synth_s2.bag" --out "$OUT/run_augmented" \
+$PY -m lcpr_core.lcpr.training.cli "$OUT/synth_s1.bag" "$OUT/synth_s2.bag" --out "$OUT/run_augmented" \
     --cache "$OUT/cache" --preset cpu --epochs 12 --queries-per-epoch 64 --batch 2 --lr 3e-4 --step-epochs 4 \
     --gamma 0.8 --fractions 0.6 0.2 0.2 --threads 2 --seed 0 --quiet \
     --augment-yaw 0.5 --augment-lighting 0.5 --brightness 0.3 1.6 --augment-camera-drop 0.2
-$PY -m lcpr_core.training.cli --export "$OUT/run_augmented/best.pth" "$OUT/lcpr_augmented.pth"
+$PY -m lcpr_core.lcpr.training.cli --export "$OUT/run_augmented/best.pth" "$OUT/lcpr_augmented.pth"
 
 for w in "augmented $OUT/lcpr_augmented.pth" "bundled weights/lcpr_synth_narrow.pth"; do
   set -- $w

@@ -9,7 +9,7 @@ that epoch on the two *validation* cities (``lcpr_eval --no-verify --no-scan-con
 protocol). The test cities are not read. Writes ``search.json`` (every point: configuration, epoch,
 cumulative training seconds, validation Recall@1 and max F1 per city) and ``config_search.png``
 (mean validation Recall@1 against training time, one line per configuration), and prints the table
-with medians of nothing: every point is one run, seed 0.
+(one training run per point, seed 0).
 
 Training time is what ``lcpr_train`` records per epoch (the steps and its per-epoch validation
 pass); building a configuration's preprocessed cache is reported beside it, once per input size.
@@ -122,7 +122,7 @@ def main() -> None:
             continue
         run_dir = args.out / slug(config)
         resume = (run_dir / "last.pth").is_file()
-        run([py, "-m", "lcpr_core.training.cli", *train_bags, "--out", str(run_dir),
+        run([py, "-m", "lcpr_core.lcpr.training.cli", *train_bags, "--out", str(run_dir),
              "--cache", str(args.out / config.cache_name), "--epochs", str(epochs),
              "--queries-per-epoch", str(args.queries_per_epoch), "--batch", "4", "--fractions", "0.8", "0.1", "0.1",
              "--threads", "2", "--seed", "0", "--quiet", *config.train_args(), *AUGMENT,
@@ -132,7 +132,8 @@ def main() -> None:
         cache_meta = json.loads((args.out / config.cache_name / "meta.json").read_text()) \
             if (args.out / config.cache_name / "meta.json").is_file() else {}
         weights = args.out / f"{slug(config)}_e{epochs}.pth"
-        run([py, "-m", "lcpr_core.training.cli", "--export", str(run_dir / "last.pth"), str(weights), "--export-fp32"])
+        run([py, "-m", "lcpr_core.lcpr.training.cli", "--export", str(run_dir / "last.pth"), str(weights),
+             "--export-fp32"])
         cities = {bag.stem: evaluate(py, bag, weights, args.out / f"eval_{slug(config)}_e{epochs}_{bag.stem}")
                   for bag in val_bags}
         point = {"config": config.name, "epochs": epochs, "train_s": round(train_s, 1),

@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from baseline_lcpr import baseline_forward  # noqa: E402
 
 from lcpr_core import LCPR  # noqa: E402
-from lcpr_core.runtime.choose import probe_inputs  # noqa: E402
+from lcpr_core.lcpr.runtime.choose import probe_inputs  # noqa: E402
 from lcpr_core.timing import cpu_flags, cpu_model, median_seconds  # noqa: E402
 
 
@@ -43,10 +43,10 @@ def matmul_peak(dtype: torch.dtype, n: int = 2048) -> float:
 
 
 def paths(args: argparse.Namespace) -> None:
-    """Every inference path of lcpr_core.runtime, interleaved, on the released configuration."""
+    """Every inference path of lcpr_core.lcpr.runtime, interleaved, on the released configuration."""
     from lcpr_core import Describer, ModelConfig
-    from lcpr_core.runtime.choose import cosine
-    from lcpr_core.runtime.quantize import calibration_inputs, quantize
+    from lcpr_core.lcpr.runtime.choose import cosine
+    from lcpr_core.lcpr.runtime.quantize import calibration_inputs, quantize
 
     base = ModelConfig(weights=args.weights or "", threads=args.threads)
     fp32 = Describer(dataclasses.replace(base, precision="fp32"))

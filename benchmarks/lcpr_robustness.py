@@ -34,11 +34,11 @@ sys.path.insert(0, str(REPO))
 
 from citysim import SynthConfig, SyntheticDrive  # noqa: E402
 from lcpr_core.atomic import atomic_path, save_figure  # noqa: E402
-from lcpr_core.describer import Describer, ModelConfig  # noqa: E402
 from lcpr_core.evaluation import database_query_protocol, ground_truth  # noqa: E402
-from lcpr_core.preprocess.camera import CameraInput, to_pil  # noqa: E402
-from lcpr_core.preprocess.range_image import NO_RETURN  # noqa: E402
-from lcpr_core.preprocess.turn import SLOT_YAWS_DEG, slot_yaw_deg, turn_frame  # noqa: E402
+from lcpr_core.lcpr.describer import Describer, ModelConfig  # noqa: E402
+from lcpr_core.lcpr.preprocess.camera import CameraInput, to_pil  # noqa: E402
+from lcpr_core.lcpr.preprocess.range_image import NO_RETURN  # noqa: E402
+from lcpr_core.lcpr.preprocess.turn import SLOT_YAWS_DEG, slot_yaw_deg, turn_frame  # noqa: E402
 from lcpr_core.pretrained import default_weights  # noqa: E402
 from lcpr_core.timing import cpu_model  # noqa: E402
 from msg_tools.frames import NUSCENES_CAMERAS  # noqa: E402

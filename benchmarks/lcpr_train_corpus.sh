@@ -14,10 +14,10 @@ QUERIES=${3:-256}
 shift $(( $# < 3 ? $# : 3 ))
 RUN="$OUT/run"
 
-$PY -m lcpr_core.training.cli "$OUT"/train_*.bag --out "$RUN" --cache "$OUT/cache" --preset cpu \
+$PY -m lcpr_core.lcpr.training.cli "$OUT"/train_*.bag --out "$RUN" --cache "$OUT/cache" --preset cpu \
     --epochs "$EPOCHS" --queries-per-epoch "$QUERIES" --batch 4 --lr 3e-4 --step-epochs 6 --gamma 0.8 \
     --fractions 0.8 0.1 0.1 --threads 2 --seed 0 --quiet "$@"
-$PY -m lcpr_core.training.cli --export "$RUN/best.pth" "$OUT/lcpr_corpus_narrow.pth"
+$PY -m lcpr_core.lcpr.training.cli --export "$RUN/best.pth" "$OUT/lcpr_corpus_narrow.pth"
 
 for split in val test; do
   for bag in "$OUT"/${split}_*.bag; do

@@ -19,12 +19,12 @@ for s in 1 2 7; do
 done
 
 # 2. training: cpu preset (6 x 64x192 images, 16x288 range image, width 0.25), 12 epochs of 64 queries
-$PY -m lcpr_core.training.cli "$OUT/synth_s1.bag" "$OUT/synth_s2.bag" --out "$OUT/run" --preset cpu \
+$PY -m lcpr_core.lcpr.training.cli "$OUT/synth_s1.bag" "$OUT/synth_s2.bag" --out "$OUT/run" --preset cpu \
     --epochs 12 --queries-per-epoch 64 --batch 2 --lr 3e-4 --step-epochs 4 --gamma 0.8 \
     --fractions 0.6 0.2 0.2 --threads 2 --seed 0 --quiet
 
 # 3. the small float16 copy that ships as weights/lcpr_synth_narrow.pth
-$PY -m lcpr_core.training.cli --export "$OUT/run/best.pth" "$OUT/lcpr_synth_narrow.pth"
+$PY -m lcpr_core.lcpr.training.cli --export "$OUT/run/best.pth" "$OUT/lcpr_synth_narrow.pth"
 
 # 4. held-out drive: trained (with the Scan Context baseline) and the seeded initialisation
 $PY -m lcpr_ros.evaluate "$OUT/synth_s7.bag" --weights "$OUT/lcpr_synth_narrow.pth" --threads 2 --quiet \

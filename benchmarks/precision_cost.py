@@ -18,7 +18,7 @@ import json
 import sys
 from pathlib import Path
 
-from lcpr_core.runtime.quantize import main as lcpr_quantize
+from lcpr_core.lcpr.runtime.quantize import main as lcpr_quantize
 from lcpr_ros.evaluate import main as lcpr_eval
 
 

@@ -2,11 +2,11 @@
 
 Pure Python and PyTorch: nothing here imports ROS.
 """
-from .checkpoint import init_from_imagenet, load_weights, read_state_dict, save_checkpoint
-from .describer import Describer, ModelConfig, build_model
 from .errors import CheckpointError, InputShapeError, LcprError, MapError, MapSchemaError, VerificationError
-from .models import LCPR, LcprOutput
-from .preprocess import PRESETS, LidarPreset, camera_tensor, cameras_tensor, range_image
+from .lcpr.checkpoint import init_from_imagenet, load_weights, read_state_dict, save_checkpoint
+from .lcpr.describer import Describer, ModelConfig, build_model
+from .lcpr.models import LCPR, LcprOutput
+from .lcpr.preprocess import PRESETS, LidarPreset, camera_tensor, cameras_tensor, range_image
 from .verification import GeometricVerifier, Verification, VerifierConfig
 from .vseq2pc.models import DescriptorModel, SequenceModel
 from .vseq2pc.preprocess import lidar_slices, structure_feature

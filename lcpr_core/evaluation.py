@@ -1,6 +1,6 @@
 """Offline evaluation of loop-closure detection: ground truth, two protocols, the report and its plots.
 
-Pure numpy and matplotlib; the bag-reading driver is ``lcpr_core.evaluate`` (command line: ``lcpr_ros.evaluate``).
+Pure numpy and matplotlib; the bag-reading driver is ``lcpr_core.lcpr.evaluate`` (command line: ``lcpr_ros.evaluate``).
 
 Ground truth. Keyframe positions come from odometry (NaN where unknown; such
 keyframes are neither queries nor counted as correct matches). Keyframe ``m`` is a

@@ -2,7 +2,7 @@
 
 A query at time ``t`` may be matched only with places stamped at or before ``t - exclude_recent_s``:
 the places just driven through look alike and would always win. (Training's positives use their own,
-symmetric rule: ``|t_a - t_b| > exclude_recent_s``, see :mod:`lcpr_core.training.split`.)
+symmetric rule: ``|t_a - t_b| > exclude_recent_s``, see :mod:`lcpr_core.lcpr.training.split`.)
 """
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Scoring published loop closures against ground truth, and what a pose graph makes of them.
 
-One home for the rule lcpr_eval (``lcpr_core.evaluate``) and the demo (``lcpr_ros.demo``)
+One home for the rule lcpr_eval (``lcpr_core.lcpr.evaluate``) and the demo (``lcpr_ros.demo``)
 both report by. Pure numpy; :func:`pose_graph_proof` needs GTSAM (optional, see
 :mod:`lcpr_core.posegraph`) and matplotlib for its plot.
 

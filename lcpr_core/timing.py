@@ -7,7 +7,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-#: Instruction-set flags that decide which inference path is fastest (see lcpr_core.runtime.choose).
+#: Instruction-set flags that decide which inference path is fastest (see lcpr_core.lcpr.runtime.choose).
 CPU_FLAGS = ("avx2", "avx512f", "avx512_vnni", "avx512_bf16", "avx512_fp16", "amx_bf16", "amx_int8")
 
 

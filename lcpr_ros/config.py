@@ -1,6 +1,6 @@
 """The node's own settings (topics, synchronisation, map file, diagnostics) as typed config.
 
-The detector's settings are :class:`lcpr_core.detector.DetectorConfig`; both are
+The detector's settings are :class:`lcpr_core.lcpr.detector.DetectorConfig`; both are
 exposed as ROS parameters by :mod:`lcpr_ros.params`, which walks these dataclasses.
 Every ``__post_init__`` refuses a bad value with a ValueError naming it.
 """
@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from lcpr_core.detector import DetectorConfig
+from lcpr_core.lcpr.detector import DetectorConfig
 from msg_tools.frames import NUSCENES_TOPICS
 from ros_common.config import INPUT_QOS, DiagnosticsConfig, MapFileConfig, require, require_finite_non_negative
 

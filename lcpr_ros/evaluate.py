@@ -3,8 +3,8 @@
     lcpr_eval BAG [--weights FILE] [--precision P] [--runtime R] [--threads N] [--limit N] [--out DIR] ...
     lcpr_eval BAG --params-file config/lcpr.yaml [--weights FILE]      # exactly what lcpr_node would run
 
-Builds :class:`lcpr_core.evaluate.EvalOptions` from the flags, or from the node's parameter file
-(:func:`lcpr_ros.params.settings_from_file`), and runs :func:`lcpr_core.evaluate.evaluate_bag`;
+Builds :class:`lcpr_core.lcpr.evaluate.EvalOptions` from the flags, or from the node's parameter file
+(:func:`lcpr_ros.params.settings_from_file`), and runs :func:`lcpr_core.lcpr.evaluate.evaluate_bag`;
 writes report.json, pr_curve.png, latency.png, trajectory.png (and posegraph.png) into ``--out``.
 Protocols: see :mod:`lcpr_core.evaluation`.
 """
@@ -17,10 +17,12 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from lcpr_core.describer import PRECISIONS, RUNTIMES, ModelConfig
-from lcpr_core.detector import DetectorConfig
 from lcpr_core.errors import LcprError
-from lcpr_core.evaluate import (  # noqa: F401 - the evaluation's API, importable from the command's module too
+from lcpr_core.evaluation import summary_table
+from lcpr_core.keyframes import KeyframeConfig
+from lcpr_core.lcpr.describer import PRECISIONS, RUNTIMES, ModelConfig
+from lcpr_core.lcpr.detector import DetectorConfig
+from lcpr_core.lcpr.evaluate import (  # noqa: F401 - the evaluation's API, importable from the command's module too
     LIDAR_FOR_TOPICS,
     N_VALUES,
     OUTPUT_FILES,
@@ -30,9 +32,7 @@ from lcpr_core.evaluate import (  # noqa: F401 - the evaluation's API, importabl
     evaluate_bag,
     write_outputs,
 )
-from lcpr_core.evaluation import summary_table
-from lcpr_core.keyframes import KeyframeConfig
-from lcpr_core.preprocess import PRESETS
+from lcpr_core.lcpr.preprocess import PRESETS
 from lcpr_core.scan_context import ScanContextConfig
 from lcpr_core.verification import VerifierConfig
 from msg_tools.errors import MsgToolsError

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from lcpr_core.errors import InputShapeError
-from lcpr_core.preprocess.camera import CameraInput, decode_image
+from lcpr_core.lcpr.preprocess.camera import CameraInput, decode_image
 from msg_tools.compressed import compressed_bytes, sniff_format
 from msg_tools.errors import ImageEncodingError, ImageError, ImageLayoutError
 from msg_tools.image import COLOUR_ENCODINGS, check_layout, image_to_rgb

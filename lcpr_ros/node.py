@@ -24,8 +24,8 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from lcpr_core.detector import DetectorConfig, Frame, LoopDetector
-from lcpr_core.preprocess.camera import CameraInput
+from lcpr_core.lcpr.detector import DetectorConfig, Frame, LoopDetector
+from lcpr_core.lcpr.preprocess.camera import CameraInput
 from ros_common.diagnostics import DiagnosticsBuilder, Health
 from ros_common.errors import ConfigError, InputRejected
 from ros_common.inputs import offer_odometry

@@ -18,7 +18,7 @@ from collections.abc import Mapping
 import numpy as np
 from std_msgs.msg import Float64MultiArray
 
-from lcpr_core.detector import Candidate, Result
+from lcpr_core.lcpr.detector import Candidate, Result
 from msg_tools.geometry import matrix_to_quaternion, quaternion_to_matrix
 from ros_common.tables import parse_candidates, table_msg
 

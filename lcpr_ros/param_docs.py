@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import math
 
-from lcpr_core.describer import PRECISIONS, RUNTIMES
 from lcpr_core.descriptor_map import INDEX_TYPES
-from lcpr_core.preprocess import CUSTOM, PRESETS
+from lcpr_core.lcpr.describer import PRECISIONS, RUNTIMES
+from lcpr_core.lcpr.preprocess import CUSTOM, PRESETS
 from ros_common.config import SHARED_DOCS
 from ros_common.params import ParamDoc
 

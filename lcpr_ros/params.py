@@ -1,4 +1,4 @@
-"""lcpr_node's parameters: every leaf of :class:`~lcpr_core.detector.DetectorConfig` and
+"""lcpr_node's parameters: every leaf of :class:`~lcpr_core.lcpr.detector.DetectorConfig` and
 :class:`~lcpr_ros.config.NodeConfig`, walked by :mod:`ros_common.params`.
 
 Names are dotted paths (``model.weights``, ``match.top_k``, ``sync.slop``, ``map.path`` ...);
@@ -13,7 +13,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from lcpr_core.detector import DetectorConfig
+from lcpr_core.lcpr.detector import DetectorConfig
 from ros_common.errors import ConfigError
 from ros_common.params import Leaf, build, describe, leaves, read_params_file, to_yaml, unique
 
@@ -21,7 +21,7 @@ from .config import NodeConfig, check_together
 from .param_docs import DOCS
 
 YAML_HEADER = """lcpr_node parameters (node name lcpr) with their defaults, which come from the config
-dataclasses (lcpr_core.detector.DetectorConfig, lcpr_ros.config.NodeConfig).
+dataclasses (lcpr_core.lcpr.detector.DetectorConfig, lcpr_ros.config.NodeConfig).
 Use: lcpr_node --ros-args --params-file config/lcpr.yaml
 Regenerate after adding fields (test/test_ros_params.py checks that every parameter is here):
   python -c "from lcpr_ros.params import yaml_text; print(yaml_text(), end='')" > config/lcpr.yaml

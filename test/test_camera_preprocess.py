@@ -9,7 +9,7 @@ import torch
 from PIL import Image
 
 from lcpr_core import InputShapeError, camera_tensor, cameras_tensor
-from lcpr_core.preprocess import IMAGENET_MEAN, IMAGENET_STD
+from lcpr_core.lcpr.preprocess import IMAGENET_MEAN, IMAGENET_STD
 
 
 def gradient_image(h: int = 90, w: int = 160) -> np.ndarray:

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from lcpr_core import LCPR, CheckpointError, ModelConfig, build_model, init_from_imagenet, load_weights
-from lcpr_core.checkpoint import save_checkpoint
+from lcpr_core.lcpr.checkpoint import save_checkpoint
 
 SMALL: dict[str, Any] = dict(num_cameras=2, image_size=(64, 128), range_size=(16, 256))
 

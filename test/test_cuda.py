@@ -14,7 +14,7 @@ import torch
 
 from lcpr_core import LCPR, Describer, ModelConfig
 from lcpr_core.errors import RuntimeSetupError
-from lcpr_core.runtime.choose import cosine, probe_inputs
+from lcpr_core.lcpr.runtime.choose import cosine, probe_inputs
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU on this machine")
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from driver_layouts import LAYOUTS, driver_cloud, scan
-from lcpr_core.preprocess import range_image
+from lcpr_core.lcpr.preprocess import range_image
 from lcpr_ros import inputs
 from msg_tools import pointcloud2_to_array
 from ros_common.errors import InputRejected

@@ -10,8 +10,8 @@ import pytest
 
 import lcpr_core
 from lcpr_core import errors
-from lcpr_core.describer import ModelConfig
 from lcpr_core.errors import InvalidValueError, LcprError
+from lcpr_core.lcpr.describer import ModelConfig
 
 PACKAGE = Path(lcpr_core.__file__).parent
 #: Built-in exceptions lcpr_core may raise directly: none but the ones Python's protocols require.

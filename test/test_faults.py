@@ -171,10 +171,10 @@ def test_the_save_map_service_answers_a_full_disk_with_the_cause_and_the_old_map
 
 def test_a_truncated_weights_file_is_refused_with_its_path(tmp_path: Path) -> None:
     """The bundled checkpoint cut short, as an interrupted copy leaves it."""
-    from lcpr_core.checkpoint import load_weights
-    from lcpr_core.describer import checkpoint_config
     from lcpr_core.errors import CheckpointError
-    from lcpr_core.models import LCPR
+    from lcpr_core.lcpr.checkpoint import load_weights
+    from lcpr_core.lcpr.describer import checkpoint_config
+    from lcpr_core.lcpr.models import LCPR
 
     bundled = Path(__file__).resolve().parents[1] / "weights" / "lcpr_synth_narrow.pth"
     config = checkpoint_config(bundled)

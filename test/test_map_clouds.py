@@ -8,10 +8,10 @@ from typing import Any, cast
 import numpy as np
 import pytest
 
-from lcpr_core.describer import Describer
 from lcpr_core.descriptor_map import SCHEMA_VERSION, DescriptorMap, MapConfig, Match
-from lcpr_core.detector import DetectorConfig, Frame, LoopDetector, MatchConfig
 from lcpr_core.errors import MapError, VerificationError
+from lcpr_core.lcpr.describer import Describer
+from lcpr_core.lcpr.detector import DetectorConfig, Frame, LoopDetector, MatchConfig
 from lcpr_core.verification import REJECT_REASONS, CloudConfig, CloudStore, VerifierConfig, compact_cloud
 from test_verification import pose, pose_error, scene, view
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from lcpr_core import InputShapeError, range_image
-from lcpr_core.preprocess import PRESETS, lidar_preset
+from lcpr_core.lcpr.preprocess import PRESETS, lidar_preset
 
 
 def test_the_reference_cloud_projects_to_the_reference_image_exactly(shared):

@@ -11,7 +11,7 @@ import rclpy
 import yaml
 from rclpy.parameter import Parameter
 
-from lcpr_core.detector import DetectorConfig, MatchConfig
+from lcpr_core.lcpr.detector import DetectorConfig, MatchConfig
 from lcpr_ros.config import NodeConfig, SyncConfig
 from lcpr_ros.params import RENAMED, Settings, all_leaves, settings_from, settings_from_file
 from ros_common.errors import ConfigError
@@ -163,7 +163,7 @@ def test_a_lidar_no_preset_knows_is_described_by_parameters_alone() -> None:
     """model.lidar custom + model.lidar_geometry.* + model.range_size: the range image follows them."""
     import numpy as np
 
-    from lcpr_core.preprocess import LidarPreset, range_image
+    from lcpr_core.lcpr.preprocess import LidarPreset, range_image
 
     values = {leaf.name: leaf.default for leaf in all_leaves()}
     values.update({"model.lidar": "custom", "model.range_size": [24, 512], "model.lidar_geometry.fov_up_deg": 2.0,

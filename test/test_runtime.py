@@ -13,9 +13,9 @@ import torch
 
 from lcpr_core import Describer, ModelConfig
 from lcpr_core.errors import RuntimeSetupError
-from lcpr_core.preprocess.dataset_files import find_nuscenes_keyframe
-from lcpr_core.runtime import EXACT_COSINE, graph_key, onnx_path
-from lcpr_core.runtime.choose import cosine, probe_inputs
+from lcpr_core.lcpr.preprocess.dataset_files import find_nuscenes_keyframe
+from lcpr_core.lcpr.runtime import EXACT_COSINE, graph_key, onnx_path
+from lcpr_core.lcpr.runtime.choose import cosine, probe_inputs
 
 NARROW: dict[str, Any] = dict(width=0.25, image_size=(64, 192), range_size=(16, 264), threads=2)
 
@@ -81,7 +81,7 @@ def test_a_graph_that_does_not_match_its_weights_is_refused_with_its_name(tmp_pa
 
 def test_auto_keeps_the_fastest_exact_path_and_logs_the_cpu(tmp_path: Path, caplog) -> None:
     config = ModelConfig(weights=str(narrow_weights(tmp_path, seed=2)), precision="auto", **NARROW)
-    with caplog.at_level(logging.INFO, logger="lcpr_core.runtime.choose"):
+    with caplog.at_level(logging.INFO, logger="lcpr_core.lcpr.runtime.choose"):
         describer = Describer(config)
     choice = describer.choice
     assert set(choice.ms) | set(choice.failed) == {"fp32", "bf16", "onnx"}
@@ -102,13 +102,13 @@ def test_an_unknown_precision_names_the_accepted_ones() -> None:
 
 
 def test_lcpr_quantize_writes_the_int8_graph_the_int8_path_then_loads(tmp_path: Path, capsys, caplog) -> None:
-    from lcpr_core.runtime.quantize import main as lcpr_quantize
+    from lcpr_core.lcpr.runtime.quantize import main as lcpr_quantize
 
     weights = narrow_weights(tmp_path, seed=3)
     assert lcpr_quantize(["--weights", str(weights), "--frames", "3", "--no-progress", "--threads", "2"]) == 0
     config = ModelConfig(weights=str(weights), precision="int8", **NARROW)
     assert onnx_path(config, "int8").parent == tmp_path and "int8 graph" in capsys.readouterr().out
-    with caplog.at_level(logging.INFO, logger="lcpr_core.runtime.choose"):
+    with caplog.at_level(logging.INFO, logger="lcpr_core.lcpr.runtime.choose"):
         describer = Describer(config)  # model.runtime auto: both runtimes timed, the faster kept
     assert describer.path == "int8" and describer.runtime in ("onnxruntime", "openvino")
     timed = next(r.getMessage() for r in caplog.records if "int8 runs in" in r.getMessage())
@@ -127,8 +127,8 @@ def test_lcpr_quantize_writes_the_int8_graph_the_int8_path_then_loads(tmp_path: 
 def test_int8_falls_back_to_onnx_runtime_when_openvino_cannot_compile_the_graph(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
     from lcpr_core.errors import RuntimeSetupError
-    from lcpr_core.runtime import choose
-    from lcpr_core.runtime.quantize import main as lcpr_quantize
+    from lcpr_core.lcpr.runtime import choose
+    from lcpr_core.lcpr.runtime.quantize import main as lcpr_quantize
 
     def refuse(path: object, **_: object) -> None:
         raise RuntimeSetupError(f"OpenVINO cannot load {str(path)!r}: a transformation failed")
@@ -136,7 +136,7 @@ def test_int8_falls_back_to_onnx_runtime_when_openvino_cannot_compile_the_graph(
     weights = narrow_weights(tmp_path, seed=5)
     assert lcpr_quantize(["--weights", str(weights), "--frames", "2", "--no-progress", "--threads", "2"]) == 0
     monkeypatch.setattr(choose, "OpenVinoBackend", refuse)
-    with caplog.at_level(logging.INFO, logger="lcpr_core.runtime.choose"):
+    with caplog.at_level(logging.INFO, logger="lcpr_core.lcpr.runtime.choose"):
         describer = Describer(ModelConfig(weights=str(weights), precision="int8", **NARROW))
     assert (describer.path, describer.runtime) == ("int8", "onnxruntime")
     assert any("openvino not measured" in r.getMessage() and "int8-" in r.getMessage() for r in caplog.records)
@@ -160,7 +160,7 @@ def test_an_unknown_runtime_names_the_accepted_ones() -> None:
 
 
 def test_lcpr_quantize_refuses_to_calibrate_on_the_held_out_test_city(tmp_path: Path, capsys) -> None:
-    from lcpr_core.runtime.quantize import main as lcpr_quantize
+    from lcpr_core.lcpr.runtime.quantize import main as lcpr_quantize
 
     weights = narrow_weights(tmp_path, seed=3)
     assert lcpr_quantize(["--weights", str(weights), "--calibration-seed", "7", "--no-progress"]) == 1
@@ -168,7 +168,7 @@ def test_lcpr_quantize_refuses_to_calibrate_on_the_held_out_test_city(tmp_path: 
 
 
 def test_the_heap_threshold_is_fixed_once_per_process_and_a_users_own_setting_is_kept(monkeypatch) -> None:
-    from lcpr_core.runtime import heap
+    from lcpr_core.lcpr.runtime import heap
 
     monkeypatch.setattr(heap, "_done", None)
     kept = heap.fix_mmap_threshold(environ={"MALLOC_MMAP_THRESHOLD_": "65536"})
@@ -182,7 +182,7 @@ def test_the_heap_threshold_is_fixed_once_per_process_and_a_users_own_setting_is
 
 
 def test_the_onnx_path_fixes_the_heap_threshold_when_it_starts(tmp_path: Path, monkeypatch) -> None:
-    from lcpr_core.runtime import heap
+    from lcpr_core.lcpr.runtime import heap
 
     monkeypatch.setattr(heap, "_done", None)
     monkeypatch.delenv("MALLOC_MMAP_THRESHOLD_", raising=False)

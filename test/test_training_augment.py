@@ -1,13 +1,14 @@
-"""LCPR training augmentations (lcpr_core.training.augment): yaw by camera slots, lighting, a missing camera."""
+"""LCPR training augmentations (lcpr_core.lcpr.training.augment): yaw by camera slots, lighting, a missing camera."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from lcpr_core.errors import InvalidValueError
-from lcpr_core.preprocess.range_image import range_image, rotate_z
-from lcpr_core.preprocess.turn import SLOT_YAWS_DEG, range_columns, turn_frame
-from lcpr_core.training.augment import AugmentConfig, augment, turn
+from lcpr_core.lcpr.preprocess.range_image import range_image
+from lcpr_core.lcpr.preprocess.turn import SLOT_YAWS_DEG, range_columns, turn_frame
+from lcpr_core.lcpr.training.augment import AugmentConfig, augment, turn
+from lcpr_core.points import rotate_z
 
 
 def cloud(seed: int = 0, n: int = 20000) -> np.ndarray:

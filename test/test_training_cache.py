@@ -6,10 +6,10 @@ import pytest
 import torch
 
 from citysim import SynthConfig, SyntheticDrive, write_bag
-from lcpr_core.preprocess import cameras_tensor, range_image
-from lcpr_core.training import InputConfig, TrainingData, build_cache
-from lcpr_core.training.cache import CacheError
-from lcpr_core.training.cli import main as train_main
+from lcpr_core.lcpr.preprocess import cameras_tensor, range_image
+from lcpr_core.lcpr.training import InputConfig, TrainingData, build_cache
+from lcpr_core.lcpr.training.cache import CacheError
+from lcpr_core.lcpr.training.cli import main as train_main
 from msg_tools import NUSCENES_TOPICS, read_frames
 
 SMALL = InputConfig(image_size=(32, 96), range_size=(8, 144), width=0.25)

@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from lcpr_core import ModelConfig, build_model
-from lcpr_core.describer import Describer, checkpoint_config
-from lcpr_core.training import Trainer, TrainingData, export_weights, open_cache
-from lcpr_core.training.mining import Triplet
+from lcpr_core.lcpr.describer import Describer, checkpoint_config
+from lcpr_core.lcpr.training import Trainer, TrainingData, export_weights, open_cache
+from lcpr_core.lcpr.training.mining import Triplet
 from training_fixtures import TINY, tiny_config, write_tiny_cache
 
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from lcpr_core.training import (
+from lcpr_core.lcpr.training import (
     MiningConfig,
     batch_triplet_loss,
     closest_positive,

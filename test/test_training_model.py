@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from lcpr_core import LCPR
-from lcpr_core.models.lcpr import scaled_channels
+from lcpr_core.lcpr.models.lcpr import scaled_channels
 
 
 def test_width_one_keeps_the_released_parameter_names_and_shapes(shared: Path):

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lcpr_core.training import SplitConfig, split_samples
+from lcpr_core.lcpr.training import SplitConfig, split_samples
 from training_fixtures import out_and_back
 
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lcpr_core.training import InputConfig, OptimConfig, SplitConfig, TrainConfig
+from lcpr_core.lcpr.training import InputConfig, OptimConfig, SplitConfig, TrainConfig
 
 TINY = InputConfig(num_cameras=2, image_size=(32, 64), range_size=(8, 64), width=0.125)
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..preprocess.range_image import rotate_z
+from ..points import rotate_z
 from ..scan_context import ScanContextConfig, scan_context
 
 SC_CONFIG = ScanContextConfig(num_rings=20, num_sectors=72, max_range=80.0, lidar_height=3.0)

@@ -1,7 +1,7 @@
 """VSeq2PC weight files: the released ones, and the ones training writes.
 
 The authors released the descriptor model as ``{'state_dict': ...}`` (read with
-``torch.load(weights_only=True)`` by :func:`lcpr_core.checkpoint.read_state_dict`) and
+``torch.load(weights_only=True)`` by :func:`lcpr_core.lcpr.checkpoint.read_state_dict`) and
 the sequence model as a whole pickled module (``torch.save(model)``). Unpickling such a
 file normally imports the authors' classes and runs whatever the pickle names, so it
 is read here by :class:`RestrictedUnpickler` instead:
@@ -38,8 +38,8 @@ import torch
 from torch import nn
 
 from ..atomic import atomic_path
-from ..checkpoint import check_state_dict, read_state_dict
 from ..errors import CheckpointError, UnsafePickleError
+from ..lcpr.checkpoint import check_state_dict, read_state_dict
 from .models import DescriptorModel, SequenceModel
 
 __all__ = [

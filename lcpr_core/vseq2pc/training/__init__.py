@@ -1,4 +1,4 @@
-"""VSeq2PC training (``vseq2pc_train``), in the rooms of LCPR's :mod:`lcpr_core.training`: config, data,
+"""VSeq2PC training (``vseq2pc_train``), in the rooms of LCPR's :mod:`lcpr_core.lcpr.training`: config, data,
 loss, schedule, loop (epochs and validation), files, plot, train (the run) and cli. See :mod:`.train`."""
 from .cli import main
 from .config import TrainConfig

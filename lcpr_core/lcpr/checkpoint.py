@@ -1,0 +1,132 @@
+"""Reading and writing LCPR weights: released checkpoints, plain state dicts, ImageNet ResNet-18."""
+from __future__ import annotations
+
+import logging
+import os
+import pickle
+from collections.abc import Mapping
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from ..atomic import atomic_path
+from ..errors import CheckpointError
+
+log = logging.getLogger(__name__)
+
+#: torchvision resnet18 prefix -> LCPR prefixes it initialises (the paper uses ImageNet
+#: ResNet-18 blocks in both branches; conv_l has no counterpart and stays random).
+IMAGENET_PREFIXES: dict[str, tuple[str, ...]] = {
+    "conv1.": ("conv1_i.",),
+    "bn1.": ("bn1_i.",),
+    "layer1.": ("layer1_i.",),
+    "layer2.": ("layer2_i.", "layer2_l."),
+    "layer3.": ("layer3_i.", "layer3_l."),
+    "layer4.": ("layer4_i.", "layer4_l."),
+}
+
+
+def read_state_dict(path: str | os.PathLike[str]) -> dict[str, torch.Tensor]:
+    """Load a weights file without running code from it.
+
+    Accepts the released format ``{'epoch', 'net': state_dict, 'scheduler'}``,
+    ``{'state_dict': ...}``, and a plain state dict; a ``module.`` prefix
+    (DataParallel) is removed.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"weights file {str(path)!r} does not exist")
+    try:
+        obj = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as err:
+        raise CheckpointError(
+            f"{str(path)!r} holds objects other than tensors and plain containers; it is refused "
+            f"because loading it could run code (weights_only=True): {err}"
+        ) from err
+    except (RuntimeError, EOFError, OSError, ValueError) as err:
+        raise CheckpointError(f"{str(path)!r} is not a readable PyTorch file: {err}") from err
+    state = _find_state_dict(obj, path)
+    if state and all(k.startswith("module.") for k in state):
+        state = {k[len("module."):]: v for k, v in state.items()}
+    return state
+
+
+def _find_state_dict(obj: object, path: Path) -> dict[str, torch.Tensor]:
+    if isinstance(obj, Mapping):
+        for key in ("net", "state_dict", "model"):
+            inner = obj.get(key)
+            if isinstance(inner, Mapping):
+                obj = inner
+                break
+        if obj and all(isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in obj.items()):
+            return dict(obj)
+    raise CheckpointError(
+        f"{str(path)!r} holds no state dict: expected a dict of tensors, or one under 'net' "
+        f"(released LCPR checkpoints) or 'state_dict'; found {type(obj).__name__}"
+    )
+
+
+def check_state_dict(model: nn.Module, state: Mapping[str, torch.Tensor], *, source: str = "state dict") -> None:
+    """Raise CheckpointError listing missing, unexpected and mis-shaped keys, if any."""
+    own = model.state_dict()
+    missing = [k for k in own if k not in state]
+    unexpected = [k for k in state if k not in own]
+    misshaped = [
+        f"{k}: file {tuple(state[k].shape)} vs model {tuple(own[k].shape)}"
+        for k in own if k in state and tuple(state[k].shape) != tuple(own[k].shape)
+    ]
+    if missing or unexpected or misshaped:
+        parts = [f"{source} does not fit {type(model).__name__} ({len(own)} keys)"]
+        for label, items in (("missing", missing), ("unexpected", unexpected), ("mis-shaped", misshaped)):
+            if items:
+                shown = ", ".join(items[:8]) + (f", ... ({len(items) - 8} more)" if len(items) > 8 else "")
+                parts.append(f"{len(items)} {label}: {shown}")
+        raise CheckpointError("; ".join(parts))
+
+
+def load_weights(model: nn.Module, path: str | os.PathLike[str]) -> nn.Module:
+    """Load a released checkpoint or a state dict into ``model``, checking every key and shape."""
+    state = read_state_dict(path)
+    check_state_dict(model, state, source=f"weights file {str(path)!r}")
+    model.load_state_dict(state)
+    log.info("loaded weights from %s (%d tensors)", path, len(state))
+    return model
+
+
+def save_checkpoint(
+    model: nn.Module,
+    path: str | os.PathLike[str],
+    *,
+    epoch: int = 0,
+    scheduler: Mapping[str, object] | None = None,
+    extra: Mapping[str, object] | None = None,
+) -> None:
+    """Write ``{'epoch', 'net', 'scheduler', ...}`` (the released layout) atomically."""
+    payload: dict[str, object] = {"epoch": epoch, "net": model.state_dict(), "scheduler": dict(scheduler or {})}
+    payload.update(extra or {})
+    with atomic_path(path) as tmp:
+        torch.save(payload, tmp)
+
+
+def init_from_imagenet(model: nn.Module, path: str | os.PathLike[str]) -> nn.Module:
+    """Initialise the ResNet blocks of both branches from a torchvision resnet18 state dict file."""
+    resnet = read_state_dict(path)
+    own = model.state_dict()
+    mapped: dict[str, torch.Tensor] = {}
+    for src_prefix, dst_prefixes in IMAGENET_PREFIXES.items():
+        for key, value in resnet.items():
+            if key.startswith(src_prefix):
+                for dst in dst_prefixes:
+                    mapped[dst + key[len(src_prefix):]] = value
+    wanted = [k for k in own if any(k.startswith(d) for ds in IMAGENET_PREFIXES.values() for d in ds)]
+    missing = [k for k in wanted if k not in mapped]
+    misshaped = [k for k in wanted if k in mapped and mapped[k].shape != own[k].shape]
+    if missing or misshaped:
+        raise CheckpointError(
+            f"{str(path)!r} is not a torchvision resnet18 state dict: {len(missing)} missing "
+            f"({', '.join(missing[:5])}), {len(misshaped)} mis-shaped ({', '.join(misshaped[:5])})"
+        )
+    model.load_state_dict({k: mapped[k] for k in wanted}, strict=False)
+    log.info("initialised %d tensors of the ResNet blocks from ImageNet weights %s", len(wanted), path)
+    return model

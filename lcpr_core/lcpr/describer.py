@@ -1,0 +1,200 @@
+"""Building an LCPR from a config and turning raw sensor data into descriptors."""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import pickle
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..errors import CheckpointError, InvalidValueError
+from .checkpoint import init_from_imagenet, load_weights
+from .models import LCPR
+from .preprocess import CUSTOM, LidarGeometry, LidarPreset, cameras_tensor, lidar_preset, range_image
+from .preprocess.camera import CameraInput
+from .runtime import Backend, Choice, choose_backend
+
+log = logging.getLogger(__name__)
+
+#: fp32 / bf16: torch (bf16 = autocast); onnx: the exported graph in ONNX Runtime (exact); int8: its
+#: statically quantised graph (made by lcpr_quantize); auto: the fastest exact one here (lcpr_core.lcpr.runtime).
+PRECISIONS = ("fp32", "bf16", "onnx", "int8", "auto")
+#: What runs an exported graph (onnx, int8): auto = for int8 the faster of the two here, for onnx ONNX Runtime.
+RUNTIMES = ("auto", "onnxruntime", "openvino")
+#: ModelConfig fields a checkpoint's 'config' entry fixes (the architecture and its input sizes).
+CHECKPOINT_FIELDS = ("width", "num_cameras", "image_size", "range_size", "lidar")
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Which LCPR to build and how to run it."""
+
+    weights: str = ""  # released checkpoint or state dict; "" = none
+    imagenet: str = ""  # torchvision resnet18 state dict, used when weights is ""
+    seed: int = 0  # random initialisation seed, used when both files are ""
+    num_cameras: int = 6
+    image_size: tuple[int, int] = (256, 704)
+    lidar: str = "nuscenes_lidar_top"  # range-image preset (preprocess.PRESETS), or "custom": lidar_geometry
+    lidar_geometry: LidarGeometry = field(default_factory=LidarGeometry)
+    range_size: tuple[int, int] = (0, 0)  # range image (height, width) replacing the preset's; (0, 0) = the preset's
+    width: float = 1.0  # channel multiplier (1.0 = released network; trained narrow models: 0.25-0.5)
+    precision: str = "auto"  # auto | fp32 | bf16 (autocast) | onnx | int8 (see PRECISIONS)
+    runtime: str = "auto"  # auto | onnxruntime | openvino: what runs the exported graph (see RUNTIMES)
+    device: str = "cpu"
+    threads: int = 0  # torch intra-op threads; 0 = leave torch's default
+    fast_decode: bool = False  # JPEG draft-mode decoding of compressed images
+
+    def __post_init__(self) -> None:
+        if self.precision not in PRECISIONS:
+            raise InvalidValueError(f"precision={self.precision!r}; accepted: {', '.join(PRECISIONS)}")
+        if self.runtime not in RUNTIMES:
+            raise InvalidValueError(f"runtime={self.runtime!r}; accepted: {', '.join(RUNTIMES)}")
+        if self.lidar == CUSTOM:
+            if min(self.range_size) < 1:
+                raise InvalidValueError(
+                    f"lidar='custom' needs range_size=(rows, columns); got {tuple(self.range_size)}")
+        else:
+            lidar_preset(self.lidar)  # raises with the accepted names
+        if self.threads < 0:
+            raise InvalidValueError(f"threads={self.threads}; it must be >= 0 (0 = torch's default)")
+        if not 0 < self.width <= 4:
+            raise InvalidValueError(f"width={self.width}; accepted: a channel multiplier in (0, 4], e.g. 1.0 or 0.25")
+        if len(self.range_size) != 2 or (tuple(self.range_size) != (0, 0) and min(self.range_size) < 1):
+            raise InvalidValueError(f"range_size={self.range_size}; accepted: (0, 0) (the preset's) or (height, width)")
+
+    @property
+    def range_preset(self) -> LidarPreset:
+        if self.lidar == CUSTOM:
+            return self.lidar_geometry.preset(*self.range_size)
+        preset = lidar_preset(self.lidar)
+        if tuple(self.range_size) == (0, 0):
+            return preset
+        return dataclasses.replace(preset, height=int(self.range_size[0]), width=int(self.range_size[1]))
+
+
+def checkpoint_config(path: str | os.PathLike[str]) -> dict[str, Any] | None:
+    """The 'config' entry of a checkpoint (width, sizes, preset), or None for files without one.
+
+    Released checkpoints and plain state dicts have none (they are the released
+    configuration). Read with ``weights_only=True`` and a memory map, so it is cheap.
+    """
+    file = Path(path)
+    if not file.is_file():
+        raise CheckpointError(f"weights file {str(file)!r} does not exist")
+    try:
+        obj = torch.load(file, map_location="cpu", weights_only=True, mmap=True)
+    except (pickle.UnpicklingError, RuntimeError, EOFError, OSError, ValueError):
+        return None  # load_weights reports what is wrong with the file
+    entry = obj.get("config") if isinstance(obj, Mapping) else None
+    if entry is None:
+        return None
+    if not isinstance(entry, Mapping) or not set(entry) <= set(CHECKPOINT_FIELDS):
+        raise CheckpointError(f"{str(file)!r} has a 'config' entry {entry!r}; accepted keys: "
+                              f"{', '.join(CHECKPOINT_FIELDS)}")
+    return dict(entry)
+
+
+def resolve_config(config: ModelConfig) -> ModelConfig:
+    """``config`` with width, camera count and input sizes taken from its weights file's 'config' entry.
+
+    The file wins: its network only loads at its own width and was trained at its own
+    sizes. Fields the caller set to something else than the default are logged. A
+    ``lidar = "custom"`` geometry is the caller's sensor and stays (its range image takes the
+    file's size).
+    """
+    if not config.weights:
+        return config
+    entry = checkpoint_config(config.weights)
+    if not entry:
+        return config
+    values: dict[str, Any] = {}
+    for key, value in entry.items():
+        if key in ("image_size", "range_size"):
+            value = tuple(int(v) for v in value)
+        values[key] = value
+    if config.lidar == CUSTOM and "lidar" in values:
+        log.info("LCPR: %s was trained with LiDAR preset %r; using the custom model.lidar_geometry at its range "
+                 "image size", config.weights, values.pop("lidar"))
+    defaults = ModelConfig()
+    for key, value in values.items():
+        given = getattr(config, key)
+        if given != value and given != getattr(defaults, key):
+            log.warning("LCPR: %s=%r replaced by %r from %s", key, given, value, config.weights)
+    return dataclasses.replace(config, **values)
+
+
+def build_model(config: ModelConfig = ModelConfig()) -> LCPR:
+    """An LCPR in eval mode with weights from the config, saying in the log where they came from.
+
+    A weights file with a 'config' entry (written by ``lcpr_train``) fixes the width and
+    input sizes (:func:`resolve_config`).
+    """
+    config = resolve_config(config)
+    preset = config.range_preset
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(config.seed)
+        model = LCPR(
+            num_cameras=config.num_cameras,
+            image_size=config.image_size,
+            range_size=(preset.height, preset.width),
+            width=config.width,
+        )
+    if config.weights:
+        load_weights(model, config.weights)
+    elif config.imagenet:
+        init_from_imagenet(model, config.imagenet)
+        log.warning("LCPR: ResNet blocks from ImageNet (%s), the rest random; not a trained place model",
+                    config.imagenet)
+    else:
+        log.warning("LCPR: no weights given, using a seeded random initialisation (seed %d); "
+                    "descriptors are not those of a trained network", config.seed)
+    return model.to(config.device).eval()
+
+
+@dataclass
+class Describer:
+    """Raw cameras + cloud -> a 256-d unit descriptor, with the configured precision."""
+
+    config: ModelConfig = field(default_factory=ModelConfig)
+    model: LCPR | None = None
+
+    def __post_init__(self) -> None:
+        self.config = resolve_config(self.config)  # preprocessing must follow the weights' sizes
+        if self.config.threads:
+            torch.set_num_threads(self.config.threads)
+        if self.model is None:
+            self.model = build_model(self.config)
+        self.choice: Choice = choose_backend(self.config, self.model)
+        self.backend: Backend = self.choice.backend  # the path descriptors are computed on
+
+    @property
+    def path(self) -> str:
+        """The precision in use: ``config.precision``, or what ``auto`` chose."""
+        return self.backend.name
+
+    @property
+    def runtime(self) -> str:
+        """What computes the descriptors: torch, onnxruntime or openvino."""
+        return self.backend.runtime
+
+    def inputs(
+        self, images: Sequence[CameraInput | None], points: np.ndarray
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Preprocess one frame -> (1 x N x 3 x H x W, 1 x 1 x h x w)."""
+        cams = cameras_tensor(images, size=self.config.image_size, fast_decode=self.config.fast_decode)
+        rng = torch.from_numpy(range_image(points, preset=self.config.range_preset))
+        return cams.unsqueeze(0), rng.view(1, 1, *rng.shape)
+
+    def describe_tensors(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:
+        """Batched model inputs -> B x 256 float32 descriptors."""
+        return self.backend(images, ranges)
+
+    def describe(self, images: Sequence[CameraInput | None], points: np.ndarray) -> np.ndarray:
+        """One frame (N camera images, None for a missing one; N x >=3 points) -> 256 float32."""
+        return self.describe_tensors(*self.inputs(images, points))[0]

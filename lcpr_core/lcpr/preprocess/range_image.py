@@ -1,0 +1,146 @@
+"""Spherical projection of a LiDAR cloud into the range image LCPR reads."""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ...errors import InputShapeError, InvalidValueError
+from ...points import rotate_z
+
+NO_RETURN = -1.0  # a range-image pixel no point falls in
+
+
+@dataclass(frozen=True)
+class LidarPreset:
+    """How one LiDAR's cloud becomes a range image.
+
+    yaw_offset_deg rotates the cloud about z so that x points forward (REP-103);
+    points with |x| < min_xy and |y| < min_xy (the ego vehicle) are dropped, as are
+    ranges outside (0, max_range).
+    """
+
+    yaw_offset_deg: float
+    min_xy: float
+    fov_up_deg: float
+    fov_down_deg: float
+    height: int
+    width: int
+    max_range: float
+
+
+@dataclass(frozen=True)
+class LidarGeometry:
+    """The geometry of a LiDAR no preset knows (``lidar = "custom"``; rows and columns: ``range_size``).
+
+    Defaults: a 32-beam +10 / -30 deg sensor in a REP-103 frame. ``yaw_offset_deg`` turns the
+    cloud about z so that x points forward; ``min_xy`` drops the ego box; ``max_range`` in m.
+    """
+
+    fov_up_deg: float = 10.0
+    fov_down_deg: float = -30.0
+    yaw_offset_deg: float = 0.0
+    max_range: float = 80.0
+    min_xy: float = 2.0
+
+    def __post_init__(self) -> None:
+        values = dataclasses.astuple(self)
+        if not all(np.isfinite(values)):
+            raise InvalidValueError(f"lidar_geometry {self}: every value must be finite")
+        _check_config(self.preset(1, 1), prefix="lidar_geometry.")
+
+    def preset(self, height: int, width: int) -> LidarPreset:
+        """This geometry at a range image of ``height`` x ``width``."""
+        return LidarPreset(self.yaw_offset_deg, self.min_xy, self.fov_up_deg, self.fov_down_deg, int(height),
+                           int(width), self.max_range)
+
+
+PRESETS: dict[str, LidarPreset] = {
+    # nuScenes LIDAR_TOP (x right, y forward): the released LCPR configuration.
+    "nuscenes_lidar_top": LidarPreset(-90.0, 2.0, 10.0, -30.0, 32, 1056, 80.0),
+    # Velodyne HDL-64E as in KITTI, cloud in a REP-103 frame (x forward, y left).
+    "kitti_hdl64e": LidarPreset(0.0, 2.0, 3.0, -25.0, 64, 1056, 80.0),
+    # Velodyne VLP-16 (Puck), REP-103 frame.
+    "velodyne_vlp16": LidarPreset(0.0, 1.0, 15.0, -15.0, 16, 1056, 80.0),
+    # Ouster OS1-64 / OS1-128 (45 deg vertical field of view) and OS2-128 (22.5 deg), cloud in
+    # ouster-ros' os_sensor frame (x forward, REP-103).
+    "ouster_os1_64": LidarPreset(0.0, 1.0, 22.5, -22.5, 64, 1056, 100.0),
+    "ouster_os1_128": LidarPreset(0.0, 1.0, 22.5, -22.5, 128, 1056, 100.0),
+    "ouster_os2_128": LidarPreset(0.0, 2.0, 11.25, -11.25, 128, 1056, 200.0),
+    # Hesai Pandar64 (+15 / -25 deg), REP-103 frame.
+    "hesai_pandar64": LidarPreset(0.0, 2.0, 15.0, -25.0, 64, 1056, 200.0),
+}
+#: ``lidar`` value that takes the geometry from explicit settings instead of a preset.
+CUSTOM = "custom"
+
+
+def lidar_preset(name: str) -> LidarPreset:
+    try:
+        return PRESETS[name]
+    except KeyError as err:
+        raise InvalidValueError(f"unknown LiDAR preset {name!r}; accepted: {', '.join(sorted(PRESETS))}") from err
+
+
+def range_image(
+    points: np.ndarray,
+    *,
+    preset: str | LidarPreset = "nuscenes_lidar_top",
+    yaw_offset_deg: float | None = None,
+    min_xy: float | None = None,
+    fov_up_deg: float | None = None,
+    fov_down_deg: float | None = None,
+    height: int | None = None,
+    width: int | None = None,
+    max_range: float | None = None,
+) -> np.ndarray:
+    """N x (>=3) points -> height x width float32 ranges in metres, -1 where no point falls.
+
+    Options left as None come from ``preset``. Non-finite points are dropped. Each
+    pixel keeps its nearest point. Computed in float64 as the released code does.
+    """
+    base = lidar_preset(preset) if isinstance(preset, str) else preset
+    given: dict[str, Any] = dict(yaw_offset_deg=yaw_offset_deg, min_xy=min_xy, fov_up_deg=fov_up_deg,
+                 fov_down_deg=fov_down_deg, height=height, width=width, max_range=max_range)
+    cfg = dataclasses.replace(base, **{k: v for k, v in given.items() if v is not None})
+    _check_config(cfg)
+    pts = np.asarray(points)
+    if pts.ndim != 2 or pts.shape[1] < 3:
+        raise InputShapeError(f"points have shape {pts.shape}; expected N x 3 or more columns (x, y, z, ...)")
+    xyz = pts[:, :3].astype(np.float64)
+    xyz = xyz[np.isfinite(xyz).all(axis=1)]
+    ego = (np.abs(xyz[:, 0]) < cfg.min_xy) & (np.abs(xyz[:, 1]) < cfg.min_xy)
+    xyz = rotate_z(xyz[~ego], cfg.yaw_offset_deg)
+
+    rng = np.linalg.norm(xyz, axis=1)
+    keep = (rng > 0) & (rng < cfg.max_range)
+    xyz, rng = xyz[keep], rng[keep]
+
+    yaw = -np.arctan2(xyz[:, 1], xyz[:, 0])
+    pitch = np.arcsin(xyz[:, 2] / rng)
+    fov_down = abs(np.deg2rad(cfg.fov_down_deg))
+    fov = abs(np.deg2rad(cfg.fov_up_deg)) + fov_down
+    u = np.clip(np.floor(0.5 * (yaw / np.pi + 1.0) * cfg.width), 0, cfg.width - 1).astype(np.int64)
+    v = np.clip(np.floor((1.0 - (pitch + fov_down) / fov) * cfg.height), 0, cfg.height - 1).astype(np.int64)
+
+    image = np.full(cfg.height * cfg.width, NO_RETURN, dtype=np.float32)
+    pixel = v * cfg.width + u
+    order = np.lexsort((rng, pixel))  # by pixel, nearest first within a pixel
+    first = np.ones(order.size, dtype=bool)
+    first[1:] = pixel[order[1:]] != pixel[order[:-1]]
+    nearest = order[first]
+    image[pixel[nearest]] = rng[nearest]
+    return image.reshape(cfg.height, cfg.width)
+
+
+def _check_config(cfg: LidarPreset, *, prefix: str = "") -> None:
+    if cfg.height < 1 or cfg.width < 1:
+        raise InvalidValueError(f"range image size {cfg.height} x {cfg.width}; both must be positive")
+    if not cfg.fov_up_deg > cfg.fov_down_deg:
+        raise InvalidValueError(
+            f"{prefix}fov_up_deg={cfg.fov_up_deg} must be above {prefix}fov_down_deg={cfg.fov_down_deg}")
+    if not cfg.max_range > 0:
+        raise InvalidValueError(f"{prefix}max_range={cfg.max_range}; it must be positive (metres)")
+    if cfg.min_xy < 0:
+        raise InvalidValueError(f"{prefix}min_xy={cfg.min_xy}; it must be >= 0 (metres)")

@@ -1,0 +1,99 @@
+"""One forward pass, several ways: torch (fp32 or bf16), or an exported graph in ONNX Runtime or OpenVINO."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
+import torch
+
+from ...errors import RuntimeSetupError
+from .heap import fix_mmap_threshold
+
+if TYPE_CHECKING:
+    from ..models import LCPR
+
+
+class Backend(Protocol):
+    name: str  # the ModelConfig.precision value it implements
+    runtime: str  # what runs it: torch, onnxruntime or openvino
+
+    def __call__(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:
+        """B x N x 3 x H x W images, B x 1 x h x w ranges -> B x 256 float32 descriptors."""
+
+
+def graph_feeds(images: torch.Tensor, ranges: torch.Tensor) -> dict[str, np.ndarray]:
+    """The exported graph's inputs (see .onnx_cache: ``images``, ``ranges``) as float32 arrays."""
+    return {"images": images.detach().cpu().float().numpy(), "ranges": ranges.detach().cpu().float().numpy()}
+
+
+class TorchBackend:
+    """The torch model, in fp32 or under bf16 autocast."""
+
+    def __init__(self, model: LCPR, *, device: str = "cpu", bf16: bool = False) -> None:
+        self.model, self.device, self.bf16 = model, device, bf16
+        self.name, self.runtime = ("bf16" if bf16 else "fp32"), "torch"
+
+    def __call__(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:
+        device_type = torch.device(self.device).type
+        with torch.inference_mode(), torch.autocast(device_type, dtype=torch.bfloat16, enabled=self.bf16):
+            desc = self.model(images.to(self.device), ranges.to(self.device))
+        return desc.float().cpu().numpy()
+
+
+class OrtBackend:
+    """An exported LCPR graph run by ONNX Runtime on the CPU."""
+
+    def __init__(self, path: str | os.PathLike[str], *, threads: int = 0, name: str = "onnx") -> None:
+        try:
+            import onnxruntime as ort
+        except ImportError as err:
+            raise RuntimeSetupError(f"model.precision={name!r} needs onnxruntime (pip install onnxruntime); "
+                                    "accepted without it: fp32, bf16") from err
+        fix_mmap_threshold()  # once per process: see .heap
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = threads  # 0 = one per core
+        options.inter_op_num_threads = 1
+        options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        options.log_severity_level = 3
+        try:
+            self.session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+        except Exception as err:  # onnxruntime raises its own exception types for bad files
+            raise RuntimeSetupError(f"ONNX Runtime cannot load {str(path)!r}: {err}") from err
+        self.path, self.name, self.runtime = Path(path), name, "onnxruntime"
+
+    def __call__(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:
+        return np.asarray(self.session.run(["descriptor"], graph_feeds(images, ranges))[0], dtype=np.float32)
+
+
+class OpenVinoBackend:
+    """An exported LCPR graph (fp32, or int8 QDQ from lcpr_quantize) run by OpenVINO on the CPU.
+
+    The inference precision is pinned to f32: on CPUs with bf16 support OpenVINO's default runs
+    every unquantised layer in bf16, which is not the graph that was checked. The int8 QDQ pairs
+    still run as int8 convolutions (VNNI / AMX), which is why this is the faster int8 runtime on
+    the Xeons measured (README, "Inference paths").
+    """
+
+    def __init__(self, path: str | os.PathLike[str], *, threads: int = 0, name: str = "int8") -> None:
+        try:
+            import openvino as ov
+        except ImportError as err:
+            raise RuntimeSetupError("model.runtime='openvino' needs openvino (pip install openvino); "
+                                    "accepted without it: onnxruntime, auto") from err
+        fix_mmap_threshold()  # once per process: see .heap
+        properties: dict[str, object] = {"INFERENCE_PRECISION_HINT": "f32", "PERFORMANCE_HINT": "LATENCY"}
+        if threads:
+            properties["INFERENCE_NUM_THREADS"] = threads
+        try:
+            self.compiled = ov.Core().compile_model(str(path), "CPU", properties)
+        except Exception as err:  # OpenVINO raises RuntimeError subclasses of its own for bad files
+            raise RuntimeSetupError(f"OpenVINO cannot load {str(path)!r}: {err}") from err
+        self.request = self.compiled.create_infer_request()
+        self.output = self.compiled.output("descriptor")
+        self.path, self.name, self.runtime = Path(path), name, "openvino"
+
+    def __call__(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:
+        # a copy: the request reuses its output buffer
+        return np.array(self.request.infer(graph_feeds(images, ranges))[self.output], dtype=np.float32)

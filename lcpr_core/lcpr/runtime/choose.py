@@ -1,0 +1,171 @@
+"""Building the backend a ModelConfig names; ``precision="auto"`` measures the exact paths once.
+
+``auto`` times torch fp32, torch bf16 autocast and ONNX Runtime fp32 on this CPU (a warm-up and
+a few forward passes each, on a fixed probe input) and keeps the fastest whose descriptor has a
+cosine of at least :data:`EXACT_COSINE` to torch fp32. The choice is logged with the CPU model,
+because it differs between machines: bf16 wins on CPUs with AMX or fast bf16 dot products
+(e.g. Zen 4) and loses on others. On a GPU, ``auto`` is torch fp32 without measuring.
+An explicit ``onnx`` or ``int8`` is checked against torch fp32 on the probe before use.
+
+``config.runtime`` says what runs an exported graph: ``onnxruntime``, ``openvino``, or ``auto``.
+With ``auto``, the int8 graph is timed in both (when OpenVINO is installed) and the faster kept:
+OpenVINO's int8 convolutions were 1.8x faster than ONNX Runtime's on an Intel Xeon with AMX,
+so it matters. The exact fp32 graph runs in ONNX Runtime under ``auto``: the two measured within
+2 % of each other on both CPUs tried, not worth the start time of compiling twice.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass, field
+from functools import partial
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from ...errors import RuntimeSetupError
+from ...timing import cpu_model, median_seconds
+from .backends import Backend, OpenVinoBackend, OrtBackend, TorchBackend
+from .onnx_cache import exported_graph, graph_key, onnx_path
+
+if TYPE_CHECKING:
+    from pathlib import Path
+
+    from ..describer import ModelConfig
+    from ..models import LCPR
+
+log = logging.getLogger(__name__)
+
+EXACT_COSINE = 0.99999  # what "exact" means for auto and for an exported graph
+INT8_COSINE = 0.99  # an int8 graph further than this from fp32 on the probe is refused as broken
+AUTO_CANDIDATES = ("fp32", "bf16", "onnx")
+_chosen: dict[tuple[str, str, int], str] = {}  # (graph key, device, threads) -> what auto chose in this process
+
+
+def probe_inputs(model: LCPR, batch: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+    """A fixed, frame-like input: clamped normal images, ranges 2-80 m with 10 % no-return."""
+    gen = torch.Generator().manual_seed(0)
+    images, ranges = model.example_inputs(batch)
+    images = torch.randn(images.shape, generator=gen).clamp_(-3, 3)
+    ranges = 2 + 78 * torch.rand(ranges.shape, generator=gen)
+    return images, ranges.masked_fill_(torch.rand(ranges.shape, generator=gen) < 0.1, -1.0)
+
+
+def cosine(a: np.ndarray, b: np.ndarray) -> float:
+    """The smallest row-wise cosine between two B x D arrays."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    num = (a * b).sum(1)
+    den = np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1)
+    return float((num / np.maximum(den, 1e-30)).min())
+
+
+@dataclass
+class Choice:
+    """What ``auto`` measured: ms per frame and cosine to torch fp32 per candidate, and the winner."""
+
+    backend: Backend
+    ms: dict[str, float] = field(default_factory=dict)
+    cosines: dict[str, float] = field(default_factory=dict)
+    failed: dict[str, str] = field(default_factory=dict)  # candidate -> why it could not run
+
+    def summary(self) -> str:
+        parts = [f"{n} {self.ms[n]:.1f} ms (cos {self.cosines[n]:.7f})" for n in self.ms]
+        parts += [f"{n}: {why}" for n, why in self.failed.items()]
+        return "; ".join(parts)
+
+
+def _build(name: str, config: ModelConfig, model: LCPR) -> Backend:
+    if name in ("fp32", "bf16"):
+        return TorchBackend(model, device=config.device, bf16=name == "bf16")
+    if config.device != "cpu":
+        raise RuntimeSetupError(f"model.precision={name!r} runs on the CPU only; with model.device="
+                                f"{config.device!r} accepted: auto, fp32, bf16")
+    if name == "onnx":
+        return _graph_backend(exported_graph(config, model), config, name)
+    if name == "int8":
+        path = onnx_path(config, "int8")
+        if not path.is_file():
+            weights = f" --weights {config.weights}" if config.weights else ""
+            raise RuntimeSetupError(f"model.precision='int8' needs the int8 graph of these weights at {str(path)!r}; "
+                                    f"make it once with: lcpr_quantize{weights} (accepted without it: auto, fp32, "
+                                    "bf16, onnx)")
+        return _graph_backend(path, config, name)
+    raise RuntimeSetupError(f"model.precision={name!r}; accepted: auto, fp32, bf16, onnx, int8")
+
+
+def _graph_backend(path: Path, config: ModelConfig, name: str) -> Backend:
+    """An exported graph in the runtime ``config.runtime`` names (``auto`` here: ONNX Runtime)."""
+    if config.runtime == "openvino":
+        return OpenVinoBackend(path, threads=config.threads, name=name)
+    return OrtBackend(path, threads=config.threads, name=name)
+
+
+def choose_backend(config: ModelConfig, model: LCPR, *, repeats: int = 3) -> Choice:
+    """The backend ``config.precision`` asks for (``auto``: measured here, see the module doc)."""
+    reference = TorchBackend(model, device=config.device)
+    if config.precision == "auto" and torch.device(config.device).type != "cpu":
+        return Choice(reference)
+    if config.precision not in ("auto", "onnx", "int8"):  # torch itself: nothing to check, no probe pass
+        return Choice(_build(config.precision, config, model))
+    images, ranges = probe_inputs(model)
+    expected = reference(images, ranges)
+    if config.precision != "auto":
+        if config.precision == "int8" and config.runtime == "auto":
+            backend: Backend = _fastest_int8(config, model, images, ranges, repeats=repeats)
+        else:
+            backend = _build(config.precision, config, model)
+        cos = cosine(backend(images, ranges), expected)
+        floor = EXACT_COSINE if config.precision == "onnx" else INT8_COSINE
+        if cos < floor:
+            where = getattr(backend, "path", "the exported graph")
+            raise RuntimeSetupError(f"{where} gives descriptors at cosine {cos:.6f} to the torch model "
+                                    f"(at least {floor} expected): delete it to export it again")
+        log.info("LCPR: %s path in %s, cosine %.7f to torch fp32 on the probe input", config.precision,
+                 backend.runtime, cos)
+        return Choice(backend)
+    memo = (graph_key(config), config.device, torch.get_num_threads())
+    if memo in _chosen:  # measured once per process: a second detector or node takes the same path
+        return Choice(reference if _chosen[memo] == "fp32" else _build(_chosen[memo], config, model))
+    choice = Choice(reference)
+    best = None
+    for name in AUTO_CANDIDATES:
+        try:
+            backend = reference if name == "fp32" else _build(name, config, model)
+            out = backend(images, ranges)
+            choice.cosines[name] = 1.0 if name == "fp32" else cosine(out, expected)
+            choice.ms[name] = 1000 * median_seconds(partial(backend, images, ranges), repeats=repeats, warmup=0)
+        except (RuntimeSetupError, RuntimeError) as err:
+            choice.failed[name] = str(err)
+            continue
+        exact = choice.cosines[name] >= EXACT_COSINE
+        if exact and (best is None or choice.ms[name] < choice.ms[best]):
+            best, choice.backend = name, backend
+    _chosen[memo] = best or "fp32"
+    log.info("LCPR: precision auto chose %s on %s (%d threads): %s", best, cpu_model(), torch.get_num_threads(),
+             choice.summary())
+    return choice
+
+
+def _fastest_int8(config: ModelConfig, model: LCPR, images: torch.Tensor, ranges: torch.Tensor, *,
+                  repeats: int) -> Backend:
+    """The int8 graph in whichever of ONNX Runtime and OpenVINO runs it faster here (measured, logged).
+
+    ONNX Runtime comes with the package: its failure (or a missing graph) is raised. OpenVINO may be
+    absent or refuse a graph; then ONNX Runtime runs it without being timed.
+    """
+    candidates: dict[str, Backend] = {"onnxruntime": _build("int8", dataclasses.replace(config, runtime="onnxruntime"),
+                                                            model)}
+    try:
+        candidates["openvino"] = _build("int8", dataclasses.replace(config, runtime="openvino"), model)
+    except RuntimeSetupError as err:
+        log.info("LCPR: int8 in openvino not measured: %s", err)
+        return candidates["onnxruntime"]
+    ms: dict[str, float] = {}
+    for runtime, backend in candidates.items():
+        backend(images, ranges)  # the first pass compiles and allocates: not timed
+        ms[runtime] = 1000 * median_seconds(partial(backend, images, ranges), repeats=repeats, warmup=0)
+    best = min(ms, key=ms.__getitem__)
+    log.info("LCPR: int8 runs in %s on %s (%d threads): %s", best, cpu_model(), torch.get_num_threads(),
+             ", ".join(f"{r} {v:.1f} ms" for r, v in ms.items()))
+    return candidates[best]
