@@ -1,8 +1,6 @@
 """Ground-truth revisits on hand-made trajectories, checked against brute force."""
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -64,12 +62,18 @@ def test_grid_search_finds_exactly_the_brute_force_pairs(
     assert np.array_equal(got, _brute_force(positions, stamps, radius, gap).reshape(-1, 2))
 
 
-def test_ten_thousand_poses_take_well_under_a_second() -> None:
+def test_ten_thousand_poses_give_the_pairs_of_the_brute_force_rule() -> None:
+    # Speed is benchmarked, not timed here; at this size the cell grid must still find every pair.
     positions, stamps = _square_loop(5, side=500.0)  # 10 000 poses, 5 laps
-    started = time.perf_counter()
     pairs = revisit_pairs(positions, stamps)
-    assert time.perf_counter() - started < 3.0
-    assert len(pairs) > 0 and np.all(pairs[:, 0] > pairs[:, 1])
+    queries = np.arange(0, len(stamps), 97)  # every 97th pose, brute force against all
+    d = np.linalg.norm(positions[queries, None, :] - positions[None, :, :], axis=2)
+    q, m = np.nonzero((d <= 9.0) & (stamps[queries, None] - stamps[None, :] > 30.0))
+    expected = {(int(queries[i]), int(j)) for i, j in zip(q, m, strict=True)}
+    chosen = set(queries.tolist())
+    found = {(int(a), int(b)) for a, b in pairs if int(a) in chosen}
+    assert len(expected) > 0 and found == expected
+    assert np.all(pairs[:, 0] > pairs[:, 1])
 
 
 def test_bad_trajectories_are_refused_by_name() -> None:
