@@ -1,4 +1,6 @@
-"""lcpr_core: the LCPR place-recognition core (models, preprocessing, descriptor map, metrics).
+"""lcpr_core: the place-recognition core. One folder per method with the same rooms, ``lcpr/`` and
+``vseq2pc/``, over a shared layer here (descriptor map, verification, metrics, ground truth, evaluation
+protocol, the keyframe / exclusion / positive-pair rules, the map file format).
 
 Pure Python and PyTorch: nothing here imports ROS.
 """
