@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import subprocess
 import sys
 import time
@@ -32,6 +31,11 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+from precision_cost import online  # noqa: E402
+
+from lcpr_core.atomic import save_figure, write_atomic  # noqa: E402
+from lcpr_core.timing import cpu_model  # noqa: E402
+from msg_tools.progress import progress_bar  # noqa: E402
 
 AUGMENT = ("--augment-yaw", "0.5", "--augment-lighting", "0.5", "--brightness", "0.3", "1.6",
            "--augment-camera-drop", "0.2")
@@ -86,9 +90,8 @@ def slug(config: Config) -> str:
 def evaluate(py: str, bag: Path, weights: Path, out: Path) -> dict[str, float]:
     run([py, "-m", "lcpr_ros.evaluate", str(bag), "--weights", str(weights), "--threads", "2", "--quiet",
          "--no-verify", "--no-scan-context", "--out", str(out)])
-    method = json.loads((out / "report.json").read_text())["methods"][0]
-    online = method["online"]
-    return {"recall@1": float(online["recall_at"]["1"]), "max_f1": float(online.get("max_f1") or 0.0)}
+    recall_at_1, max_f1 = online(out / "report.json")
+    return {"recall@1": recall_at_1, "max_f1": max_f1}
 
 
 def main() -> None:
@@ -109,13 +112,13 @@ def main() -> None:
                          f"(missing {missing}); run benchmarks/lcpr_corpus.sh first")
     args.out.mkdir(parents=True, exist_ok=True)
     result_path = args.out / "search.json"
-    cpu = _cpu_model()
+    cpu = cpu_model()
     points: list[dict] = []
     skipped: list[str] = []
     start = time.perf_counter()
-    from tqdm import tqdm
-
-    for config, epochs in tqdm(PLAN, desc="search", unit="stage"):
+    bar = progress_bar(len(PLAN), desc="search", unit="stage")
+    for config, epochs in PLAN:
+        bar.update(1)
         elapsed_min = (time.perf_counter() - start) / 60
         if elapsed_min >= args.budget_min:
             skipped.append(f"{config.name} to epoch {epochs}")
@@ -143,29 +146,19 @@ def main() -> None:
                  "mean_recall@1": sum(c["recall@1"] for c in cities.values()) / len(cities),
                  "mean_max_f1": sum(c["max_f1"] for c in cities.values()) / len(cities)}
         points.append(point)
-        tqdm.write(f"{config.name} epoch {epochs}: {train_s / 60:.1f} min training, validation R@1 "
+        bar.write(f"{config.name} epoch {epochs}: {train_s / 60:.1f} min training, validation R@1 "
                    + ", ".join(f"{k} {v['recall@1']:.2f}" for k, v in cities.items()))
         _write(result_path, cpu, points, skipped, time.perf_counter() - start)
+    bar.close()
     _write(result_path, cpu, points, skipped, time.perf_counter() - start)
     _plot(points, args.out / "config_search.png", cpu)
     _print_table(points, skipped, cpu, time.perf_counter() - start)
 
 
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
-
-
 def _write(path: Path, cpu: str, points: list[dict], skipped: list[str], wall_s: float) -> None:
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps({"cpu": cpu, "threads": 2, "wall_s": round(wall_s, 1), "points": points,
-                               "skipped": skipped}, indent=1))
-    tmp.replace(path)
+    text = json.dumps({"cpu": cpu, "threads": 2, "wall_s": round(wall_s, 1), "points": points, "skipped": skipped},
+                      indent=1)
+    write_atomic(path, lambda tmp: tmp.write_text(text))
 
 
 def _plot(points: list[dict], path: Path, cpu: str) -> None:
@@ -180,11 +173,8 @@ def _plot(points: list[dict], path: Path, cpu: str) -> None:
     ax.set_title("LCPR configurations (labels: epochs; online protocol, no verification)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="lower right")
-    fig.tight_layout()
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)
-    tmp.replace(path)
 
 
 def _print_table(points: list[dict], skipped: list[str], cpu: str, wall_s: float) -> None:
