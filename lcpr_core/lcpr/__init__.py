@@ -1,6 +1,7 @@
 """LCPR: six camera images and one LiDAR range image -> a 256-d, yaw-invariant place descriptor.
 
-    from lcpr_core.lcpr import Describer, ModelConfig, LoopDetector, DetectorConfig, Frame
+    from lcpr_core.lcpr import Describer, ModelConfig
+    from lcpr_core.lcpr.detector import LoopDetector, DetectorConfig, Frame   # also lcpr_core.detector
     describer = Describer(ModelConfig(weights="lcpr.pth"))        # the authors' files load too
     descriptor = describer.describe(images, points)               # six H x W x 3 uint8, N x 3 cloud
     detector = LoopDetector(DetectorConfig())                     # what lcpr_node runs
@@ -16,10 +17,9 @@ evaluation protocol, keyframe/exclusion/positive rules, map file) is one level u
 """
 from .checkpoint import init_from_imagenet, load_weights, read_state_dict, save_checkpoint
 from .describer import Describer, ModelConfig, build_model
-from .detector import DetectorConfig, Frame, LoopDetector
 from .models import LCPR, LcprOutput
 
 __all__ = [
-    "LCPR", "Describer", "DetectorConfig", "Frame", "LcprOutput", "LoopDetector", "ModelConfig", "build_model",
+    "LCPR", "Describer", "LcprOutput", "ModelConfig", "build_model",
     "init_from_imagenet", "load_weights", "read_state_dict", "save_checkpoint",
 ]
