@@ -83,6 +83,27 @@ def run(cmd: list[str]) -> None:
         raise SystemExit(f"failed ({proc.returncode}): {' '.join(cmd)}\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
 
 
+def train_command(py: str, config: Config, train_bags: list[str], run_dir: Path, cache: Path, epochs: int, *,
+                  queries_per_epoch: int, resume: bool) -> list[str]:
+    """The ``lcpr_train`` command of one stage: ``config`` to ``epochs`` in all, the recipe's augmentations."""
+    return [py, "-m", "lcpr_core.lcpr.training.cli", *train_bags, "--out", str(run_dir), "--cache", str(cache),
+            "--epochs", str(epochs), "--queries-per-epoch", str(queries_per_epoch), "--batch", "4",
+            "--fractions", "0.8", "0.1", "0.1", "--threads", "2", "--seed", "0", "--quiet", *config.train_args(),
+            *AUGMENT, *(["--resume"] if resume else [])]
+
+
+def training_seconds(run_dir: Path, epochs: int) -> float:
+    """Training time ``lcpr_train`` recorded for epochs 1..``epochs`` of ``run_dir`` (steps and validation)."""
+    history = json.loads((run_dir / "history.json").read_text())
+    return float(sum(h.get("seconds", 0.0) for h in history if 0 < h["epoch"] <= epochs))
+
+
+def in_training_recall(run_dir: Path, epoch: int) -> float | None:
+    """Recall@1 on the validation queries of the training cities that ``lcpr_train`` recorded at ``epoch``."""
+    history = json.loads((run_dir / "history.json").read_text())
+    return next((h.get("recall@1") for h in history if h["epoch"] == epoch), None)
+
+
 def slug(config: Config) -> str:
     return "".join(c if c.isalnum() else "_" for c in config.name)[:48].strip("_")
 
@@ -125,13 +146,9 @@ def main() -> None:
             continue
         run_dir = args.out / slug(config)
         resume = (run_dir / "last.pth").is_file()
-        run([py, "-m", "lcpr_core.lcpr.training.cli", *train_bags, "--out", str(run_dir),
-             "--cache", str(args.out / config.cache_name), "--epochs", str(epochs),
-             "--queries-per-epoch", str(args.queries_per_epoch), "--batch", "4", "--fractions", "0.8", "0.1", "0.1",
-             "--threads", "2", "--seed", "0", "--quiet", *config.train_args(), *AUGMENT,
-             *(["--resume"] if resume else [])])
-        history = json.loads((run_dir / "history.json").read_text())
-        train_s = sum(h.get("seconds", 0.0) for h in history if 0 < h["epoch"] <= epochs)
+        run(train_command(py, config, train_bags, run_dir, args.out / config.cache_name, epochs,
+                          queries_per_epoch=args.queries_per_epoch, resume=resume))
+        train_s = training_seconds(run_dir, epochs)
         cache_meta = json.loads((args.out / config.cache_name / "meta.json").read_text()) \
             if (args.out / config.cache_name / "meta.json").is_file() else {}
         weights = args.out / f"{slug(config)}_e{epochs}.pth"
@@ -141,7 +158,7 @@ def main() -> None:
                   for bag in val_bags}
         point = {"config": config.name, "epochs": epochs, "train_s": round(train_s, 1),
                  "cache_s": cache_meta.get("build_seconds"),
-                 "in_training_val_recall@1": next(h.get("recall@1") for h in history if h["epoch"] == epochs),
+                 "in_training_val_recall@1": in_training_recall(run_dir, epochs),
                  "cities": cities,
                  "mean_recall@1": sum(c["recall@1"] for c in cities.values()) / len(cities),
                  "mean_max_f1": sum(c["max_f1"] for c in cities.values()) / len(cities)}

@@ -1,0 +1,58 @@
+"""The LCPR robustness study's perturbations (benchmarks/lcpr_robustness.py): what each one removes."""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any, cast
+
+import numpy as np
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+from lcpr_robustness import Keyframe, lidar_quarter_out, parse_city  # noqa: E402
+
+from lcpr_core.lcpr.describer import Describer  # noqa: E402
+from lcpr_core.lcpr.preprocess.range_image import NO_RETURN  # noqa: E402
+
+
+class EchoDescriber:
+    """Stands in for a Describer: the 'descriptor' is the range image the perturbation handed to the model."""
+
+    def inputs(self, images: Any, points: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        return torch.zeros(1, 6, 3, 4, 4), torch.arange(1.0, 16 * 288 + 1).view(1, 1, 16, 288)
+
+    def describe_tensors(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:
+        return ranges.numpy().reshape(1, 16, 288)
+
+
+def occluded(part: str) -> np.ndarray:
+    kf = Keyframe(0.0, [None] * 6, np.zeros((1, 3)), np.zeros(3))
+    return lidar_quarter_out(part)(cast(Describer, EchoDescriber()), kf)
+
+
+@pytest.mark.parametrize(("part", "rows", "columns"), [("columns", slice(None), slice(0, 72)),
+                                                       ("top rows", slice(0, 4), slice(None)),
+                                                       ("bottom rows", slice(12, 16), slice(None))])
+def test_each_lidar_occlusion_blanks_exactly_its_quarter_of_the_range_image(part: str, rows: slice,
+                                                                           columns: slice) -> None:
+    out = occluded(part)
+    blank = np.zeros(out.shape, bool)
+    blank[rows, columns] = True
+    assert np.all(out[blank] == NO_RETURN) and np.all(out[~blank] != NO_RETURN)
+    assert blank.mean() == pytest.approx(0.25)
+
+
+def test_an_unknown_lidar_part_names_the_accepted_ones() -> None:
+    with pytest.raises(ValueError, match="'left half'.*'columns', 'top rows' or 'bottom rows'"):
+        occluded("left half")
+
+
+def test_a_city_may_name_its_own_keyframe_count() -> None:
+    assert parse_city("grid:7") == ("grid", 7, None)
+    assert parse_city("kitti00:21:900") == ("kitti00", 21, 900)
+    for bad in ("grid", "moon:3", "grid:7:x", "grid:7:300:1"):
+        with pytest.raises(argparse.ArgumentTypeError, match="ROUTE:SEED"):
+            parse_city(bad)
