@@ -33,15 +33,17 @@ from lcpr_config_search import (  # noqa: E402
     CPU,
     VALIDATION,
     evaluate,
+    finish_figure,
     in_training_recall,
     run,
     slug,
     train_command,
     training_seconds,
+    validation_cells,
 )
 from precision_cost import online  # noqa: E402
 
-from lcpr_core.atomic import save_figure, write_atomic  # noqa: E402
+from lcpr_core.atomic import write_atomic  # noqa: E402
 from lcpr_core.timing import cpu_model  # noqa: E402
 from msg_tools.progress import progress_bar  # noqa: E402
 
@@ -155,13 +157,9 @@ def _plot(points: list[dict], chosen: int, start_epoch: int, path: Path, cpu: st
     ax.plot(epochs, [pt["mean_recall@1"] for pt in pts], "k^-", label="mean Recall@1")
     ax.axvline(start_epoch + 0.5, color="grey", lw=0.8, ls=":")
     ax.axvline(chosen, color="green", lw=1.0, label=f"chosen: epoch {chosen}")
-    ax.set_xlabel(f"epochs (cpu preset; left of the dotted line: the search; {cpu}, 2 threads)")
-    ax.set_ylabel("validation cities, online protocol")
-    ax.set_title("LCPR bundled weights: validation Recall@1 and max F1 against epochs")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="lower right")
-    save_figure(fig, path, dpi=120)
-    plt.close(fig)
+    finish_figure(fig, ax, path, xlabel=f"epochs (cpu preset; left of the dotted line: the search; {cpu}, 2 threads)",
+                  ylabel="validation cities, online protocol",
+                  title="LCPR bundled weights: validation Recall@1 and max F1 against epochs")
 
 
 def _print(points: list[dict], chosen: dict, final: dict[str, dict], lcpr: str, threshold: float | None,
@@ -170,8 +168,7 @@ def _print(points: list[dict], chosen: dict, final: dict[str, dict], lcpr: str, 
     print("| epochs | training min | " + " | ".join(f"{v} R@1 / max F1" for v in VALIDATION) + " | mean R@1 |")
     print("|---|---|" + "---|" * len(VALIDATION) + "---|")
     for pt in sorted(points, key=lambda pt: pt["epochs"]):
-        cells = " | ".join(f"{pt['cities'][v]['recall@1']:.2f} / {pt['cities'][v]['max_f1']:.3f}" for v in VALIDATION)
-        print(f"| {pt['epochs']} | {pt['train_s'] / 60:.1f} | {cells} | {pt['mean_recall@1']:.3f} |")
+        print(f"| {pt['epochs']} | {pt['train_s'] / 60:.1f} | {validation_cells(pt)} | {pt['mean_recall@1']:.3f} |")
     print(f"chosen on validation: epoch {chosen['epochs']}; max-F1 threshold on {THRESHOLD_CITY}: {threshold}")
     others = [name for name in next(iter(final.values())) if name != lcpr]
     print(f"| city (online protocol) | {lcpr} Recall@1 / max F1 | " + " | ".join(others) + " |")

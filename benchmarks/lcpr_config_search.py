@@ -31,6 +31,8 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.axes import Axes  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
 from precision_cost import online  # noqa: E402
 
 from lcpr_core.atomic import save_figure, write_atomic  # noqa: E402
@@ -185,13 +187,26 @@ def _plot(points: list[dict], path: Path, cpu: str) -> None:
         ax.plot([x for x, _, _ in pts], [y for _, y, _ in pts], "o-", label=name)
         for x, y, e in pts:
             ax.annotate(f"{e}", (x, y), textcoords="offset points", xytext=(3, 3), fontsize=7)
-    ax.set_xlabel(f"training time, minutes ({cpu}, 2 threads)")
-    ax.set_ylabel("Recall@1, mean of the 2 validation cities")
-    ax.set_title("LCPR configurations (labels: epochs; online protocol, no verification)")
+    finish_figure(fig, ax, path, xlabel=f"training time, minutes ({cpu}, 2 threads)",
+                  ylabel="Recall@1, mean of the 2 validation cities",
+                  title="LCPR configurations (labels: epochs; online protocol, no verification)")
+
+
+def finish_figure(fig: Figure, ax: Axes, path: Path, *, xlabel: str, ylabel: str, title: str) -> None:
+    """Label, grid and legend one panel, write the PNG atomically and close the figure."""
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="lower right")
     save_figure(fig, path, dpi=120)
     plt.close(fig)
+
+
+def validation_cells(point: dict) -> str:
+    """A point's ``R@1 / max F1`` per validation city, as table cells."""
+    return " | ".join(f"{point['cities'][v]['recall@1']:.2f} / {point['cities'][v]['max_f1']:.3f}"
+                      for v in VALIDATION)
 
 
 def _print_table(points: list[dict], skipped: list[str], cpu: str, wall_s: float) -> None:
@@ -200,8 +215,8 @@ def _print_table(points: list[dict], skipped: list[str], cpu: str, wall_s: float
           + " | mean R@1 |")
     print("|---|---|---|" + "---|" * len(VALIDATION) + "---|")
     for p in points:
-        cells = " | ".join(f"{p['cities'][v]['recall@1']:.2f} / {p['cities'][v]['max_f1']:.3f}" for v in VALIDATION)
-        print(f"| {p['config']} | {p['epochs']} | {p['train_s'] / 60:.1f} | {cells} | {p['mean_recall@1']:.3f} |")
+        print(f"| {p['config']} | {p['epochs']} | {p['train_s'] / 60:.1f} | {validation_cells(p)} "
+              f"| {p['mean_recall@1']:.3f} |")
     if points:
         best = max(points, key=lambda p: (p["mean_recall@1"], p["mean_max_f1"]))
         print(f"best on validation: {best['config']}, epoch {best['epochs']} "

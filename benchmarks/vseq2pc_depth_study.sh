@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# Does VSeq2PC's sequence help once the camera depth is what a depth network gives? The same short
+# training (1 stage-1 + 4 stage-2 epochs of 3520 queries, the bundled recipe's options) on the six
+# training drives of vseq2pc_train_synth.sh twice: with the renderer's exact depth, and with depth
+# limited to 25 m and 10 % noise (benchmarks/vseq2pc_depth_range.py; both settings fixed before any
+# run). Each is scored on the validation drive (seed 23) with the full sequence, 1, 2 and 3 frames,
+# and the network-free feature match. The held-out drive (seed 7) is not read. About 25 minutes on
+# 2 cores.
+#
+#   bash benchmarks/vseq2pc_depth_study.sh [OUT]   (default OUT=out/vseq2pc; the caches of step 1 of
+#                                                    vseq2pc_train_synth.sh must be there)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-.venv/bin/python}
+OUT=${1:-out/vseq2pc}
+LIMITED="$OUT/depth25"
+[ -f "$LIMITED/val_seed23.npz" ] || $PY benchmarks/vseq2pc_depth_range.py "$OUT"/train_seed{5,11,13,17,19,29}.npz \
+    "$OUT/val_seed23.npz" --out "$LIMITED" --max-depth 25 --noise 0.1
+
+study() {  # name, cache folder
+  local name=$1 caches=$2 run="$OUT/depth_study_$1"
+  [ -f "$run/history.json" ] && grep -q '"epoch": 4' "$run/history.json" || \
+    $PY -m lcpr_core.vseq2pc.training.cli --cache "$caches"/train_seed{5,11,13,17,19,29}.npz \
+      --val-cache "$caches/val_seed23.npz" --out "$run" --pretrain-epochs 1 --epochs 4 --batch 32 \
+      --queries-per-epoch 3520 --seq-base-lr 8e-3 --seq-warmup-epochs 0.5 --negatives 1 --mixed-batch-norm \
+      --ranking-weight 1 --reconstruction-weight 10 --select recall_at_1 --no-progress
+  $PY -m lcpr_core.vseq2pc.evaluate --cache "$caches/val_seed23.npz" --weights-dir "$run" --which best \
+    --name "$name" --single-frame --sequence-lengths 2 3 --feature-match --out "$run/eval_val"
+}
+study exact_depth "$OUT"
+study depth25 "$LIMITED"
