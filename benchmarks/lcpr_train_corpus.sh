@@ -2,6 +2,8 @@
 # Train the narrow CPU LCPR on the corpus of benchmarks/lcpr_corpus.sh (12 training cities), pick the
 # epoch on validation queries of the training cities, take the operating threshold (max F1, online
 # protocol) on the validation cities, then report on the test cities (never used before this step).
+# One run from scratch: the recipe of the previous bundled weights (20 epochs); the bundled weights now
+# continue the configuration search's run instead (benchmarks/lcpr_bundle.py).
 #
 #   bash benchmarks/lcpr_train_corpus.sh [CORPUS] [EPOCHS] [QUERIES_PER_EPOCH] [extra lcpr_train options]
 #   (default CORPUS=out/corpus, 20 epochs of 256 queries; e.g. --augment-yaw 0.5 --augment-lighting 0.5)

@@ -2,7 +2,7 @@
 # Train the narrow CPU LCPR on two synthetic drives and compare it, on a held-out drive of
 # another seed (another street graph and city), with its seeded initialisation and Scan Context.
 # This is the recipe of the earlier bundled weights (README "Training": "earlier bundled weights");
-# the bundled weights now come from benchmarks/lcpr_corpus.sh + lcpr_train_corpus.sh. On 2 idle cores the
+# the bundled weights now come from benchmarks/lcpr_corpus.sh, lcpr_config_search.py and lcpr_bundle.py. On 2 idle cores the
 # training takes ~4 min (15-25 s per epoch); on a shared machine it took 25 min.
 #
 #   bash benchmarks/lcpr_train_synth.sh [OUT]      (default OUT=out/train_synth)
