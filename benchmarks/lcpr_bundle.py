@@ -33,6 +33,7 @@ from lcpr_config_search import (  # noqa: E402
     CPU,
     VALIDATION,
     evaluate,
+    export,
     finish_figure,
     in_training_recall,
     run,
@@ -41,7 +42,7 @@ from lcpr_config_search import (  # noqa: E402
     training_seconds,
     validation_cells,
 )
-from precision_cost import online  # noqa: E402
+from precision_cost import online_methods  # noqa: E402
 
 from lcpr_core.atomic import write_atomic  # noqa: E402
 from lcpr_core.timing import cpu_model  # noqa: E402
@@ -49,21 +50,6 @@ from msg_tools.progress import progress_bar  # noqa: E402
 
 TEST = ("test_grid_s7", "test_grid_s9", "test_k00_s21")
 THRESHOLD_CITY = "val_grid_s3"
-
-
-def _online(report: Path) -> dict[str, dict[str, float | None]]:
-    """Online Recall@1, max F1 and its threshold of every method in an ``lcpr_eval`` report."""
-    methods = json.loads(report.read_text())["methods"]
-    return {m["name"]: {"recall@1": float(m["online"]["recall_at"]["1"]), "max_f1": float(m["online"]["max_f1"]),
-                        "max_f1_threshold": m["online"].get("max_f1_threshold")} for m in methods}
-
-
-def _score(py: str, bag: Path, weights: Path, out: Path) -> dict[str, float]:
-    """A stage's validation score, as the search scores its points; a stage scored before is read back."""
-    if (out / "report.json").is_file() and (out / "report.json").stat().st_mtime > weights.stat().st_mtime:
-        recall_at_1, max_f1 = online(out / "report.json")
-        return {"recall@1": recall_at_1, "max_f1": max_f1}
-    return evaluate(py, bag, weights, out)
 
 
 def _search_points(search: Path) -> list[dict]:
@@ -113,10 +99,9 @@ def main() -> None:
         if not weights.is_file():
             if trained != epochs:
                 raise SystemExit(f"{run_dir} is at epoch {trained}, past stage {epochs}, and {weights} is missing")
-            run([py, "-m", "lcpr_core.lcpr.training.cli", "--export", str(run_dir / "last.pth"), str(weights),
-                 "--export-fp32"])
-        cities = {name: _score(py, args.corpus / f"{name}.bag", weights, args.out / f"eval_e{epochs}_{name}")
-                  for name in VALIDATION}
+            export(py, run_dir / "last.pth", weights, fp32=True)
+        cities = {name: evaluate(py, args.corpus / f"{name}.bag", weights, args.out / f"eval_e{epochs}_{name}",
+                                 reuse=True) for name in VALIDATION}
         points.append({"epochs": epochs, "train_s": round(training_seconds(run_dir, epochs), 1), "cities": cities,
                        "mean_recall@1": sum(c["recall@1"] for c in cities.values()) / len(cities),
                        "mean_max_f1": sum(c["max_f1"] for c in cities.values()) / len(cities),
@@ -129,13 +114,13 @@ def main() -> None:
     source = (args.search / f"{slug(CPU)}_e{chosen['epochs']}.pth" if chosen["source"] == "search"
               else args.out / f"stage_e{chosen['epochs']}.pth")
     target = args.target or args.out / "lcpr_synth_narrow.pth"
-    run([py, "-m", "lcpr_core.lcpr.training.cli", "--export", str(source), str(target)])
+    export(py, source, target, fp32=False)
     final: dict[str, dict] = {}
     for name in (*VALIDATION, *TEST):  # the test cities only now, after every choice
         out = args.out / f"final_{name}"
         run([py, "-m", "lcpr_ros.evaluate", str(args.corpus / f"{name}.bag"), "--weights", str(target),
              "--threads", "2", "--quiet", "--no-verify", "--out", str(out)])
-        final[name] = _online(out / "report.json")
+        final[name] = online_methods(out / "report.json")
     lcpr = next(iter(final[THRESHOLD_CITY]))
     threshold = final[THRESHOLD_CITY][lcpr]["max_f1_threshold"]
     cpu = cpu_model()

@@ -106,14 +106,24 @@ def in_training_recall(run_dir: Path, epoch: int) -> float | None:
     return next((h.get("recall@1") for h in history if h["epoch"] == epoch), None)
 
 
+def export(py: str, source: Path, target: Path, *, fp32: bool) -> None:
+    """``lcpr_train --export``: a copy of a checkpoint without optimizer state (float16 unless ``fp32``)."""
+    run([py, "-m", "lcpr_core.lcpr.training.cli", "--export", str(source), str(target),
+         *(["--export-fp32"] if fp32 else [])])
+
+
 def slug(config: Config) -> str:
     return "".join(c if c.isalnum() else "_" for c in config.name)[:48].strip("_")
 
 
-def evaluate(py: str, bag: Path, weights: Path, out: Path) -> dict[str, float]:
-    run([py, "-m", "lcpr_ros.evaluate", str(bag), "--weights", str(weights), "--threads", "2", "--quiet",
-         "--no-verify", "--no-scan-context", "--out", str(out)])
-    recall_at_1, max_f1 = online(out / "report.json")
+def evaluate(py: str, bag: Path, weights: Path, out: Path, *, reuse: bool = False) -> dict[str, float]:
+    """Online Recall@1 and max F1 of ``weights`` on ``bag`` (retrieval only); with ``reuse``, a report in
+    ``out`` newer than the weights is read back instead of evaluating again."""
+    report = out / "report.json"
+    if not (reuse and report.is_file() and report.stat().st_mtime > weights.stat().st_mtime):
+        run([py, "-m", "lcpr_ros.evaluate", str(bag), "--weights", str(weights), "--threads", "2", "--quiet",
+             "--no-verify", "--no-scan-context", "--out", str(out)])
+    recall_at_1, max_f1 = online(report)
     return {"recall@1": recall_at_1, "max_f1": max_f1}
 
 
@@ -154,8 +164,7 @@ def main() -> None:
         cache_meta = json.loads((args.out / config.cache_name / "meta.json").read_text()) \
             if (args.out / config.cache_name / "meta.json").is_file() else {}
         weights = args.out / f"{slug(config)}_e{epochs}.pth"
-        run([py, "-m", "lcpr_core.lcpr.training.cli", "--export", str(run_dir / "last.pth"), str(weights),
-             "--export-fp32"])
+        export(py, run_dir / "last.pth", weights, fp32=True)
         cities = {bag.stem: evaluate(py, bag, weights, args.out / f"eval_{slug(config)}_e{epochs}_{bag.stem}")
                   for bag in val_bags}
         point = {"config": config.name, "epochs": epochs, "train_s": round(train_s, 1),

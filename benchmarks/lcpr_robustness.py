@@ -90,20 +90,23 @@ def camera_out(index: int) -> Perturb:
     return describe
 
 
+#: which quarter of an h x w range image each LiDAR occlusion blanks (index of its last two axes)
+LIDAR_QUARTERS: dict[str, Callable[[int, int], tuple[slice, slice]]] = {
+    "columns": lambda h, w: (slice(None), slice(0, w // 4)),  # a 90 deg sector, full height
+    "top rows": lambda h, w: (slice(0, h // 4), slice(None)),  # the upper beams, all the way round
+    "bottom rows": lambda h, w: (slice(h - h // 4, h), slice(None)),  # the lower beams
+}
+
+
 def lidar_quarter_out(part: str) -> Perturb:
-    """A quarter of the range image set to no return: ``columns`` (a 90 deg sector, full height), or the
-    ``top rows`` / ``bottom rows`` (the upper or lower quarter of the beams, all the way round)."""
+    """A quarter of the range image set to no return: one of :data:`LIDAR_QUARTERS`."""
+    if part not in LIDAR_QUARTERS:
+        raise ValueError(f"LiDAR part {part!r}; expected one of {', '.join(map(repr, LIDAR_QUARTERS))}")
+    quarter = LIDAR_QUARTERS[part]
+
     def describe(describer: Describer, kf: Keyframe) -> np.ndarray:
         cams, ranges = describer.inputs(kf.images, kf.points)  # 1 x 1 x h x w
-        height, width = ranges.shape[-2:]
-        if part == "columns":
-            ranges[..., : width // 4] = NO_RETURN
-        elif part == "top rows":
-            ranges[..., : height // 4, :] = NO_RETURN
-        elif part == "bottom rows":
-            ranges[..., height - height // 4:, :] = NO_RETURN
-        else:
-            raise ValueError(f"LiDAR part {part!r}; expected 'columns', 'top rows' or 'bottom rows'")
+        ranges[(..., *quarter(*ranges.shape[-2:]))] = NO_RETURN
         return describer.describe_tensors(cams, ranges)[0]
     return describe
 
@@ -122,8 +125,7 @@ def conditions() -> dict[str, dict[str, Perturb | None]]:
     return {
         "yaw": {f"{slot_yaw_deg(k):g}": (None if k == TURNS[-1] else turned(k)) for k in TURNS},
         "occlusion": {"none": None, **{f"{name} out": camera_out(i) for i, name in enumerate(NUSCENES_CAMERAS)},
-                      **{f"LiDAR 1/4 {part} out": lidar_quarter_out(part) for part in ("columns", "top rows",
-                                                                                        "bottom rows")}},
+                      **{f"LiDAR 1/4 {part} out": lidar_quarter_out(part) for part in LIDAR_QUARTERS}},
         "lighting": {f"{f:g}": (None if f == 1.0 else brightness(f)) for f in BRIGHTNESS},
     }
 

@@ -22,9 +22,17 @@ from lcpr_core.lcpr.runtime.quantize import main as lcpr_quantize
 from lcpr_ros.evaluate import main as lcpr_eval
 
 
+def online_methods(report: Path) -> dict[str, dict[str, float | None]]:
+    """Online Recall@1, max F1 and its threshold of every method in an ``lcpr_eval`` report, by name."""
+    methods = json.loads(report.read_text())["methods"]
+    return {m["name"]: {"recall@1": float(m["online"]["recall_at"]["1"]), "max_f1": float(m["online"]["max_f1"]),
+                        "max_f1_threshold": m["online"].get("max_f1_threshold")} for m in methods}
+
+
 def online(report: Path) -> tuple[float, float]:
-    method = json.loads(report.read_text())["methods"][0]["online"]
-    return float(method["recall_at"]["1"]), float(method["max_f1"])
+    """(online Recall@1, max F1) of the report's first method (LCPR)."""
+    first = next(iter(online_methods(report).values()))
+    return float(first["recall@1"] or 0.0), float(first["max_f1"] or 0.0)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -40,7 +40,7 @@ def limited_depth(camera: np.ndarray, *, max_depth: float, noise: float, rng: np
     out = np.where(too_far, 0.0, r)
     road = out[:, ROAD_CHANNEL]
     cut = too_far[:, ROAD_CHANNEL]
-    road[cut] = (max_depth / np.cos(angle) * np.ones_like(road))[cut]  # road reaches the depth limit
+    road[cut] = np.broadcast_to(max_depth / np.cos(angle), road.shape)[cut]  # road reaches the depth limit
     return (np.clip(out, 0.0, MAX_RANGE) / MAX_RANGE).astype(np.float32)
 
 

@@ -46,7 +46,7 @@ def test_each_lidar_occlusion_blanks_exactly_its_quarter_of_the_range_image(part
 
 
 def test_an_unknown_lidar_part_names_the_accepted_ones() -> None:
-    with pytest.raises(ValueError, match="'left half'.*'columns', 'top rows' or 'bottom rows'"):
+    with pytest.raises(ValueError, match="'left half'.*'columns', 'top rows', 'bottom rows'"):
         occluded("left half")
 
 
