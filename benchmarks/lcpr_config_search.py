@@ -24,6 +24,7 @@ import json
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -86,12 +87,13 @@ def run(cmd: list[str]) -> None:
 
 
 def train_command(py: str, config: Config, train_bags: list[str], run_dir: Path, cache: Path, epochs: int, *,
-                  queries_per_epoch: int, resume: bool) -> list[str]:
-    """The ``lcpr_train`` command of one stage: ``config`` to ``epochs`` in all, the recipe's augmentations."""
+                  queries_per_epoch: int, resume: bool, extra: Sequence[str] = ()) -> list[str]:
+    """The ``lcpr_train`` command of one stage: ``config`` to ``epochs`` in all, the recipe's augmentations
+    (and ``extra`` options)."""
     return [py, "-m", "lcpr_core.lcpr.training.cli", *train_bags, "--out", str(run_dir), "--cache", str(cache),
             "--epochs", str(epochs), "--queries-per-epoch", str(queries_per_epoch), "--batch", "4",
             "--fractions", "0.8", "0.1", "0.1", "--threads", "2", "--seed", "0", "--quiet", *config.train_args(),
-            *AUGMENT, *(["--resume"] if resume else [])]
+            *AUGMENT, *extra, *(["--resume"] if resume else [])]
 
 
 def training_seconds(run_dir: Path, epochs: int) -> float:

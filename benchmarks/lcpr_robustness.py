@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 from PIL import ImageEnhance
 
 REPO = Path(__file__).resolve().parents[1]
@@ -40,8 +41,8 @@ from lcpr_core.atomic import atomic_path, save_figure  # noqa: E402
 from lcpr_core.evaluation import database_query_protocol, ground_truth  # noqa: E402
 from lcpr_core.lcpr.describer import Describer, ModelConfig  # noqa: E402
 from lcpr_core.lcpr.preprocess.camera import CameraInput, to_pil  # noqa: E402
-from lcpr_core.lcpr.preprocess.range_image import NO_RETURN  # noqa: E402
 from lcpr_core.lcpr.preprocess.turn import SLOT_YAWS_DEG, slot_yaw_deg, turn_frame  # noqa: E402
+from lcpr_core.lcpr.training.augment import LIDAR_QUARTERS, occlude_lidar  # noqa: E402
 from lcpr_core.pretrained import default_weights  # noqa: E402
 from lcpr_core.timing import cpu_model  # noqa: E402
 from msg_tools.frames import NUSCENES_CAMERAS  # noqa: E402
@@ -91,23 +92,15 @@ def camera_out(index: int) -> Perturb:
 
 
 #: which quarter of an h x w range image each LiDAR occlusion blanks (index of its last two axes)
-LIDAR_QUARTERS: dict[str, Callable[[int, int], tuple[slice, slice]]] = {
-    "columns": lambda h, w: (slice(None), slice(0, w // 4)),  # a 90 deg sector, full height
-    "top rows": lambda h, w: (slice(0, h // 4), slice(None)),  # the upper beams, all the way round
-    "bottom rows": lambda h, w: (slice(h - h // 4, h), slice(None)),  # the lower beams
-}
-
-
 def lidar_quarter_out(part: str) -> Perturb:
-    """A quarter of the range image set to no return: one of :data:`LIDAR_QUARTERS`."""
+    """A quarter of the range image set to no return: one of training's :data:`LIDAR_QUARTERS` (the sector from
+    column 0)."""
     if part not in LIDAR_QUARTERS:
         raise ValueError(f"LiDAR part {part!r}; expected one of {', '.join(map(repr, LIDAR_QUARTERS))}")
-    quarter = LIDAR_QUARTERS[part]
 
     def describe(describer: Describer, kf: Keyframe) -> np.ndarray:
         cams, ranges = describer.inputs(kf.images, kf.points)  # 1 x 1 x h x w
-        ranges[(..., *quarter(*ranges.shape[-2:]))] = NO_RETURN
-        return describer.describe_tensors(cams, ranges)[0]
+        return describer.describe_tensors(cams, torch.from_numpy(occlude_lidar(ranges.numpy(), part)))[0]
     return describe
 
 
@@ -130,7 +123,11 @@ def conditions() -> dict[str, dict[str, Perturb | None]]:
     }
 
 
-def study_city(describer: Describer, keyframes: list[Keyframe], *, name: str) -> dict[str, dict[str, float]]:
+STUDIES = ("yaw", "occlusion", "lighting")
+
+
+def study_city(describer: Describer, keyframes: list[Keyframe], *, name: str,
+               studies: Sequence[str] = STUDIES) -> dict[str, dict[str, float]]:
     stamps = np.array([kf.stamp for kf in keyframes])
     gt = ground_truth(stamps, np.stack([kf.position for kf in keyframes]), radius=9.0, exclude_recent_s=30.0)
     base = np.stack([describer.describe(kf.images, kf.points)
@@ -139,6 +136,8 @@ def study_city(describer: Describer, keyframes: list[Keyframe], *, name: str) ->
     print(f"{name}: {len(keyframes)} keyframes, {len(gt.database)} database, {len(queries)} queries", flush=True)
     out: dict[str, dict[str, float]] = {}
     for study, conds in conditions().items():
+        if study not in studies:
+            continue
         out[study] = {}
         for label, perturb in conds.items():
             desc = base.copy()
@@ -152,7 +151,7 @@ def study_city(describer: Describer, keyframes: list[Keyframe], *, name: str) ->
     return out
 
 
-def plot(results: dict[str, dict[str, dict[str, float]]], path: Path) -> None:
+def plot(results: dict[str, dict[str, dict[str, float]]], path: Path, *, weights: str) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -160,11 +159,11 @@ def plot(results: dict[str, dict[str, dict[str, float]]], path: Path) -> None:
 
     fig, axes = plt.subplots(1, 3, figsize=(16, 4.5))
     for city, studies in results.items():
-        yaw = studies["yaw"]
+        yaw = studies.get("yaw", {})
         axes[0].plot([float(k) for k in yaw], list(yaw.values()), marker="o", label=city)
-        light = studies["lighting"]
+        light = studies.get("lighting", {})
         axes[2].plot([float(k) for k in light], list(light.values()), marker="o", label=city)
-    occl_labels = list(next(iter(results.values()))["occlusion"])
+    occl_labels = list(next(iter(results.values())).get("occlusion", {}))
     width = 0.8 / max(len(results), 1)
     for j, (city, studies) in enumerate(results.items()):
         axes[1].bar(np.arange(len(occl_labels)) + j * width, [studies["occlusion"][k] for k in occl_labels],
@@ -179,8 +178,9 @@ def plot(results: dict[str, dict[str, dict[str, float]]], path: Path) -> None:
         ax.set_ylabel("Recall@1")
         ax.set_ylim(0, 1)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-    fig.suptitle("LCPR (bundled narrow weights), held-out synthetic cities: only the queries perturbed")
+        if ax.has_data():
+            ax.legend(fontsize=8)
+    fig.suptitle(f"LCPR ({weights}), synthetic cities {', '.join(results)}: only the queries perturbed")
     save_figure(fig, path, dpi=100)
     plt.close(fig)
 
@@ -203,6 +203,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--image-size", type=int, nargs=2, default=(400, 225), metavar=("W", "H"))
     p.add_argument("--weights", default="", help="LCPR weights (default: the bundled narrow weights)")
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--studies", nargs="+", choices=STUDIES, default=list(STUDIES), help="default: all three")
     p.add_argument("--out", type=Path, default=REPO / "out" / "robustness")
     args = p.parse_args(argv)
     weights = args.weights or default_weights()
@@ -216,13 +217,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     for route, seed, count in args.cities:
         name = f"{route}:{seed}"
         frames[name] = count or args.frames
-        results[name] = study_city(describer, render(route, seed, frames[name], tuple(args.image_size)), name=name)
+        results[name] = study_city(describer, render(route, seed, frames[name], tuple(args.image_size)), name=name,
+                                   studies=args.studies)
     args.out.mkdir(parents=True, exist_ok=True)
     report = {"weights": str(weights), "cpu": cpu_model(), "python": platform.python_version(),
               "frames": frames, "seconds": time.perf_counter() - start, "recall_at_1": results}
     with atomic_path(args.out / "robustness.json") as tmp:
         tmp.write_text(json.dumps(report, indent=2) + "\n")
-    plot(results, args.out / "robustness.png")
+    plot(results, args.out / "robustness.png", weights=Path(weights).name)
     print(f"written: {args.out / 'robustness.json'}, {args.out / 'robustness.png'} ({report['seconds']:.0f} s)")
     return 0
 

@@ -14,6 +14,7 @@ from msg_tools.frames import SensorFrame
 from msg_tools.progress import progress_iter
 
 from .bagout import write_bag
+from .depthnet import DEPTH_NOISE, DEPTH_RANGE
 from .drive import ROUTES, SynthConfig, SyntheticDrive
 from .lidar import LidarNoise
 from .rigs import RIGS
@@ -48,7 +49,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="camera WIDTHxHEIGHT (default: nuscenes 800x450, kitti 1241x376)")
     p.add_argument("--night-fraction", type=float, default=0.25, help="share of night lighting sessions (0..1)")
     p.add_argument("--camera-drop", type=float, default=0.01, help="chance of a missing camera image (default 0.01)")
-    p.add_argument("--no-noise", action="store_true", help="exact sensors: no pixel/range noise, no dropouts")
+    p.add_argument("--depth-range", type=float, default=DEPTH_RANGE,
+                   help=f"kitti rig depth images: no depth beyond this many metres along the optical axis, as a "
+                        f"monocular depth network (default {DEPTH_RANGE:g}; 0 = the renderer's depth to any range)")
+    p.add_argument("--depth-noise", type=float, default=DEPTH_NOISE,
+                   help=f"kitti rig depth images: smooth relative depth error, 1 sigma (default {DEPTH_NOISE:g}; "
+                        f"0 = exact)")
+    p.add_argument("--no-noise", action="store_true",
+                   help="exact sensors: no pixel/range/depth noise, no dropouts (the depth range still applies)")
     p.add_argument("--no-lane-changes", action="store_true",
                    help="kitti00: drive exactly on the real trajectory (default: change lanes now and then)")
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1),
@@ -63,13 +71,14 @@ def build_parser() -> argparse.ArgumentParser:
 def config_from_args(args: argparse.Namespace) -> SynthConfig:
     if args.kitti_poses is not None and args.route != "kitti00":
         raise ValueError(f"--kitti-poses is only used with --route kitti00 (got --route {args.route})")
-    noise = {} if not args.no_noise else {"lidar_noise": LidarNoise.off(), "pixel_noise": False, "camera_drop": 0.0}
+    noise = {} if not args.no_noise else {"lidar_noise": LidarNoise.off(), "pixel_noise": False, "camera_drop": 0.0,
+                                          "depth_noise": 0.0}
     return SynthConfig(
         rig=args.rig, frames=args.frames, seed=args.seed, route=args.route,
         kitti_poses=None if args.kitti_poses is None else str(args.kitti_poses),
         keyframe_spacing=args.keyframe_spacing, image_size=args.image_size, night_fraction=args.night_fraction,
         lane_changes=not args.no_lane_changes,
-        **({"camera_drop": args.camera_drop} | noise),
+        depth_range=args.depth_range, **({"camera_drop": args.camera_drop, "depth_noise": args.depth_noise} | noise),
     )
 
 

@@ -16,6 +16,7 @@ from msg_tools.shared_data import shared_path
 
 from .camera import encode_jpeg, lighting, render_camera
 from .citygen import CityConfig, grid_city, path_city
+from .depthnet import DEPTH_NOISE, DEPTH_RANGE, estimated_depth
 from .hashing import hash_uniform, rng_for
 from .lidar import LidarNoise, render_lidar
 from .rigs import BASE_HEIGHT, Rig, check_level, make_rig, pose_matrix
@@ -61,6 +62,8 @@ class SynthConfig:
     lane_changes: bool = True  # kitti00 route: drive in another lane now and then (grid routes always do)
     jpeg_quality: int = 85
     camera_range: float = 120.0  # metres rendered by the cameras
+    depth_range: float = DEPTH_RANGE  # depth images (kitti rig): none beyond this along the optical axis; 0 = all
+    depth_noise: float = DEPTH_NOISE  # depth images: smooth relative error, 1 sigma; 0 = the renderer's exact depth
     start_time: float = 1.7e9  # stamp of the first keyframe, seconds
     city: CityConfig | None = None  # None = route default
 
@@ -81,6 +84,10 @@ class SynthConfig:
             raise ValueError(f"jpeg_quality={self.jpeg_quality}; it must lie in 1..100")
         if not self.speed > 0:
             raise ValueError(f"speed={self.speed}; it must be positive (m/s)")
+        if not self.depth_range >= 0:
+            raise ValueError(f"depth_range={self.depth_range}; it must be at least 0 (metres; 0 = unlimited)")
+        if not 0.0 <= self.depth_noise < 1.0:
+            raise ValueError(f"depth_noise={self.depth_noise}; it must lie in [0, 1)")
 
 
 @dataclass
@@ -187,8 +194,11 @@ class SyntheticDrive:
                 image = CameraImage(stamp=stamp, frame_id=cam.frame_id,
                                     jpeg=encode_jpeg(r.rgb, quality=cfg.jpeg_quality))
             else:
-                image = CameraImage(stamp=stamp, frame_id=cam.frame_id, rgb=r.rgb,
-                                    depth=r.depth if rig.depth_and_labels else None,
+                depth = None
+                if rig.depth_and_labels:
+                    depth = estimated_depth(r.depth, max_depth=cfg.depth_range, noise=cfg.depth_noise,
+                                            rng=rng_for(cfg.seed, 41, i, len(cameras)))
+                image = CameraImage(stamp=stamp, frame_id=cam.frame_id, rgb=r.rgb, depth=depth,
                                     labels=r.labels if rig.depth_and_labels else None)
             timing.encode += time.perf_counter() - t2
             cameras.append(image)

@@ -1,4 +1,5 @@
-"""The LCPR robustness study's perturbations (benchmarks/lcpr_robustness.py): what each one removes."""
+"""The LCPR robustness study's perturbations (benchmarks/lcpr_robustness.py): what each one removes; the LiDAR
+occlusion experiment's rule (benchmarks/lcpr_lidar_occlusion.py)."""
 from __future__ import annotations
 
 import argparse
@@ -12,7 +13,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
-from lcpr_robustness import Keyframe, lidar_quarter_out, parse_city  # noqa: E402
+from lcpr_lidar_occlusion import replaces  # noqa: E402
+from lcpr_robustness import Keyframe, lidar_quarter_out, parse_city, plot  # noqa: E402
 
 from lcpr_core.lcpr.describer import Describer  # noqa: E402
 from lcpr_core.lcpr.preprocess.range_image import NO_RETURN  # noqa: E402
@@ -56,3 +58,21 @@ def test_a_city_may_name_its_own_keyframe_count() -> None:
     for bad in ("grid", "moon:3", "grid:7:x", "grid:7:300:1"):
         with pytest.raises(argparse.ArgumentTypeError, match="ROUTE:SEED"):
             parse_city(bad)
+
+
+def test_the_study_plot_draws_a_subset_of_the_studies(tmp_path: Path) -> None:
+    results = {"grid:3": {"occlusion": {"none": 0.9, "LiDAR 1/4 top rows out": 0.2}}}
+    plot(results, tmp_path / "r.png", weights="w.pth")
+    assert (tmp_path / "r.png").stat().st_size > 1000
+
+
+@pytest.mark.parametrize(("clean", "quarters", "expected"), [
+    (0.90, 0.60, True),  # robust, no clean loss
+    (0.895, 0.60, True),  # half a point of clean recall lost: allowed
+    (0.88, 0.60, False),  # two points lost: kept out
+    (0.92, 0.40, False),  # more clean recall, but no more robust
+])
+def test_occlusion_trained_weights_replace_the_bundled_only_under_the_fixed_rule(clean: float, quarters: float,
+                                                                                expected: bool) -> None:
+    bundled = {"mean_recall@1": 0.90, "mean_lidar_quarter_recall@1": 0.40}
+    assert replaces(bundled, {"mean_recall@1": clean, "mean_lidar_quarter_recall@1": quarters}) is expected

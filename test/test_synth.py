@@ -38,7 +38,8 @@ from citysim.world import GroundMap, ObjectsBuilder, ParkingSlots
 from lcpr_core import range_image
 from msg_tools import KITTI_TOPICS, NUSCENES_TOPICS, read_camera_models, read_frames
 
-EXACT: dict[str, Any] = dict(lidar_noise=LidarNoise.off(), pixel_noise=False, camera_drop=0.0)
+EXACT: dict[str, Any] = dict(lidar_noise=LidarNoise.off(), pixel_noise=False, camera_drop=0.0, depth_range=0.0,
+                             depth_noise=0.0)
 
 
 @pytest.fixture(scope="module")

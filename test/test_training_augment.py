@@ -1,13 +1,14 @@
-"""LCPR training augmentations (lcpr_core.lcpr.training.augment): yaw by camera slots, lighting, a missing camera."""
+"""LCPR training augmentations (lcpr_core.lcpr.training.augment): yaw by camera slots, lighting, a missing camera,
+a quarter of the LiDAR occluded."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from lcpr_core.errors import InvalidValueError
-from lcpr_core.lcpr.preprocess.range_image import range_image
+from lcpr_core.lcpr.preprocess.range_image import NO_RETURN, range_image
 from lcpr_core.lcpr.preprocess.turn import SLOT_YAWS_DEG, range_columns, turn_frame
-from lcpr_core.lcpr.training.augment import AugmentConfig, augment, turn
+from lcpr_core.lcpr.training.augment import LIDAR_QUARTERS, AugmentConfig, augment, occlude_lidar, turn
 from lcpr_core.points import rotate_z
 
 
@@ -64,11 +65,41 @@ def test_probability_zero_changes_nothing_and_one_applies_each_augmentation() ->
     assert np.array_equal(images, images.copy())  # the inputs are not changed in place
 
 
+def test_a_lidar_sector_wraps_round_the_range_image_edge_and_covers_a_quarter() -> None:
+    ranges = np.ones((16, 288), np.float32)
+    out = occlude_lidar(ranges, "columns", start=250)
+    blank = out == NO_RETURN
+    assert blank.mean() == pytest.approx(0.25) and blank.all(axis=0).sum() == 72
+    assert blank[:, 250:].all() and blank[:, :34].all() and not blank[:, 34:250].any()
+    assert (ranges == 1).all()  # a copy
+    top = occlude_lidar(ranges, "top rows")
+    assert (top[:4] == NO_RETURN).all() and (top[4:] == 1).all()
+
+
+def test_lidar_occlusion_blanks_one_quarter_per_sample_and_leaves_the_cameras() -> None:
+    rng = np.random.default_rng(1)
+    images = rng.integers(0, 256, (30, 6, 2, 2, 3), dtype=np.uint8)
+    cameras = np.ones((30, 6), bool)
+    ranges = rng.uniform(1, 50, (30, 16, 288)).astype(np.float32)
+    out_images, out_cameras, out = augment(images, cameras, ranges, AugmentConfig(lidar_occlusion=1.0), rng)
+    assert np.array_equal(out_images, images) and out_cameras.all()
+    blank = out == NO_RETURN
+    assert np.allclose(blank.mean(axis=(1, 2)), 0.25)
+    rows = blank.all(axis=2)  # whole rows blank: the top or the bottom quarter
+    parts = {"top rows" if rows[b, 0] else "bottom rows" if rows[b, -1] else "columns" for b in range(30)}
+    assert parts == set(LIDAR_QUARTERS)
+    assert np.array_equal(out[~blank], ranges[~blank])
+
+
 def test_bad_augmentation_settings_name_the_accepted_values() -> None:
     with pytest.raises(InvalidValueError, match=r"augment.yaw=1.5; expected a probability in \[0, 1\]"):
         AugmentConfig(yaw=1.5)
     with pytest.raises(InvalidValueError, match="expected 0 < low <= high"):
         AugmentConfig(brightness=(1.2, 0.5))
+    with pytest.raises(InvalidValueError, match=r"augment.lidar_occlusion=-0.1; expected a probability"):
+        AugmentConfig(lidar_occlusion=-0.1)
+    with pytest.raises(InvalidValueError, match="'half'; expected one of 'columns', 'top rows', 'bottom rows'"):
+        occlude_lidar(np.zeros((4, 8), np.float32), "half")
     with pytest.raises(InvalidValueError, match="needs the 6 nuScenes cameras"):
         augment(np.zeros((1, 4, 2, 2, 3), np.uint8), np.ones((1, 4), bool), np.zeros((1, 2, 8), np.float32),
                 AugmentConfig(yaw=1.0), np.random.default_rng(0))

@@ -14,7 +14,8 @@ from lcpr_core.vseq2pc.dataset import FeatureCache, build_cache, main
 @pytest.fixture(scope="module")
 def bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
     drive = SyntheticDrive(SynthConfig(rig="kitti", frames=4, seed=3, image_size=(310, 94), camera_drop=0.0,
-                                       lidar_noise=LidarNoise.off(), pixel_noise=False))
+                                       lidar_noise=LidarNoise.off(), pixel_noise=False, depth_range=0.0,
+                                       depth_noise=0.0))  # exact depth: the features must agree
     out = tmp_path_factory.mktemp("bags") / "kitti.bag"
     write_bag(drive, out)
     return out

@@ -8,16 +8,42 @@ validation compute), each sample independently:
   which is the cloud turned by that angle;
 - lighting: every image's brightness scaled by a factor uniform in ``brightness`` (as PIL's
   ImageEnhance.Brightness: a blend with black, clipped);
-- camera drop: one camera, chosen at random, blacked out (a zero slot, as a camera that stopped sending).
+- camera drop: one camera, chosen at random, blacked out (a zero slot, as a camera that stopped sending);
+- LiDAR occlusion: a quarter of the range image set to no return, as the paper's occlusion study: a
+  90-degree sector at a random azimuth, the top quarter of the rows or the bottom quarter (one of the
+  three, equally likely; :data:`LIDAR_QUARTERS`).
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from ...errors import InvalidValueError
+from ..preprocess.range_image import NO_RETURN
 from ..preprocess.turn import SLOT_YAWS_DEG, range_columns, slot_yaw_deg
+
+#: The quarters of an h x w range image the occlusion augmentation and the robustness study black out:
+#: name -> (rows, columns) of the quarter, the sector starting at column ``start``.
+LIDAR_QUARTERS: dict[str, Callable[[int, int, int], tuple[slice, slice]]] = {
+    "columns": lambda h, w, start: (slice(None), slice(start, start + w // 4)),  # a 90 deg sector, full height
+    "top rows": lambda h, w, start: (slice(0, h // 4), slice(None)),  # the upper beams, all the way round
+    "bottom rows": lambda h, w, start: (slice(h - h // 4, h), slice(None)),  # the lower beams
+}
+
+
+def occlude_lidar(ranges: np.ndarray, part: str, *, start: int = 0) -> np.ndarray:
+    """... x h x w range images with one of :data:`LIDAR_QUARTERS` set to no return (a copy).
+
+    ``start``: the first column of the sector (``columns``); columns past the edge wrap round.
+    """
+    if part not in LIDAR_QUARTERS:
+        raise InvalidValueError(f"LiDAR part {part!r}; expected one of {', '.join(map(repr, LIDAR_QUARTERS))}")
+    h, w = ranges.shape[-2:]
+    out = np.roll(ranges, -start, axis=-1)  # the sector at column 0, so it never splits at the edge
+    out[(..., *LIDAR_QUARTERS[part](h, w, 0))] = NO_RETURN
+    return np.roll(out, start, axis=-1)
 
 
 @dataclass(frozen=True)
@@ -26,9 +52,10 @@ class AugmentConfig:
     lighting: float = 0.0  # chance its brightness is scaled
     brightness: tuple[float, float] = (0.3, 1.6)  # range of the brightness factor
     camera_drop: float = 0.0  # chance one of its cameras is blacked out
+    lidar_occlusion: float = 0.0  # chance a quarter of its range image is blacked out
 
     def __post_init__(self) -> None:
-        for name in ("yaw", "lighting", "camera_drop"):
+        for name in ("yaw", "lighting", "camera_drop", "lidar_occlusion"):
             value = getattr(self, name)
             if not 0.0 <= value <= 1.0:
                 raise InvalidValueError(f"augment.{name}={value!r}; expected a probability in [0, 1]")
@@ -38,7 +65,7 @@ class AugmentConfig:
 
     @property
     def active(self) -> bool:
-        return self.yaw > 0 or self.lighting > 0 or self.camera_drop > 0
+        return self.yaw > 0 or self.lighting > 0 or self.camera_drop > 0 or self.lidar_occlusion > 0
 
 
 def turn(images: np.ndarray, cameras: np.ndarray, ranges: np.ndarray, k: int) -> tuple[np.ndarray, ...]:
@@ -66,4 +93,7 @@ def augment(images: np.ndarray, cameras: np.ndarray, ranges: np.ndarray, config:
             images[b] = np.clip(images[b].astype(np.float32) * factor + 0.5, 0, 255).astype(np.uint8)
         if rng.random() < config.camera_drop:
             cameras[b, int(rng.integers(num_cameras))] = False
+        if config.lidar_occlusion > 0 and rng.random() < config.lidar_occlusion:  # old recipes: same draws
+            part = list(LIDAR_QUARTERS)[int(rng.integers(len(LIDAR_QUARTERS)))]
+            ranges[b] = occlude_lidar(ranges[b], part, start=int(rng.integers(ranges.shape[-1])))
     return images, cameras, ranges

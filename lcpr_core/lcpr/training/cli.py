@@ -86,6 +86,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="range of the brightness factor (default 0.3 1.6)")
     g.add_argument("--augment-camera-drop", type=float, default=0.0,
                    help="chance one of its cameras is blacked out (default 0)")
+    g.add_argument("--augment-lidar-occlusion", type=float, default=0.0,
+                   help="chance a quarter of its range image is blacked out: a 90-degree sector, the top or the "
+                        "bottom rows (default 0)")
     return p
 
 
@@ -105,7 +108,8 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         seed=args.seed, imagenet=args.imagenet, threads=args.threads, eval_batch=args.eval_batch,
         device=args.device,
         augment=AugmentConfig(yaw=args.augment_yaw, lighting=args.augment_lighting,
-                              brightness=tuple(args.brightness), camera_drop=args.augment_camera_drop),
+                              brightness=tuple(args.brightness), camera_drop=args.augment_camera_drop,
+                              lidar_occlusion=args.augment_lidar_occlusion),
     )
 
 
