@@ -27,11 +27,11 @@ import shutil
 import sys
 from pathlib import Path
 
-from lcpr_config_search import CPU, VALIDATION, evaluate, export, run, train_command  # noqa: E402
+from lcpr_config_search import CPU, VALIDATION, evaluate, export, run, train_command
 
-from lcpr_core.atomic import write_atomic  # noqa: E402
-from lcpr_core.lcpr.training.augment import LIDAR_QUARTERS  # noqa: E402
-from lcpr_core.timing import cpu_model  # noqa: E402
+from lcpr_core.atomic import write_atomic
+from lcpr_core.lcpr.training.augment import LIDAR_QUARTERS
+from lcpr_core.timing import cpu_model
 
 ROBUSTNESS_CITIES = ("grid:3", "kitti00:45:900")  # the validation cities of benchmarks/lcpr_corpus.sh
 LIDAR_LABELS = tuple(f"LiDAR 1/4 {part} out" for part in LIDAR_QUARTERS)
@@ -95,7 +95,7 @@ def main() -> None:
     results = {f"bundled (epoch {start})": score(py, args.corpus, bundled, args.out / "bundled"),
                f"+ LiDAR occlusion {args.chance:g} (epoch {args.epochs})": score(py, args.corpus, new,
                                                                                  args.out / "occluded")}
-    (before, b), (after, a) = results.items()
+    b, a = results.values()
     replace = replaces(b, a)
     text = json.dumps({"cpu": cpu_model(), "chance": args.chance, "epochs": args.epochs, "results": results,
                        "replace": replace}, indent=1)

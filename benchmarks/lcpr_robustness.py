@@ -42,7 +42,7 @@ from lcpr_core.evaluation import database_query_protocol, ground_truth  # noqa: 
 from lcpr_core.lcpr.describer import Describer, ModelConfig  # noqa: E402
 from lcpr_core.lcpr.preprocess.camera import CameraInput, to_pil  # noqa: E402
 from lcpr_core.lcpr.preprocess.turn import SLOT_YAWS_DEG, slot_yaw_deg, turn_frame  # noqa: E402
-from lcpr_core.lcpr.training.augment import LIDAR_QUARTERS, occlude_lidar  # noqa: E402
+from lcpr_core.lcpr.training.augment import LIDAR_QUARTERS, lidar_quarter, occlude_lidar  # noqa: E402
 from lcpr_core.pretrained import default_weights  # noqa: E402
 from lcpr_core.timing import cpu_model  # noqa: E402
 from msg_tools.frames import NUSCENES_CAMERAS  # noqa: E402
@@ -91,12 +91,10 @@ def camera_out(index: int) -> Perturb:
     return describe
 
 
-#: which quarter of an h x w range image each LiDAR occlusion blanks (index of its last two axes)
 def lidar_quarter_out(part: str) -> Perturb:
     """A quarter of the range image set to no return: one of training's :data:`LIDAR_QUARTERS` (the sector from
-    column 0)."""
-    if part not in LIDAR_QUARTERS:
-        raise ValueError(f"LiDAR part {part!r}; expected one of {', '.join(map(repr, LIDAR_QUARTERS))}")
+    column 0); an unknown part is refused here, when the condition is built."""
+    lidar_quarter(part)
 
     def describe(describer: Describer, kf: Keyframe) -> np.ndarray:
         cams, ranges = describer.inputs(kf.images, kf.points)  # 1 x 1 x h x w

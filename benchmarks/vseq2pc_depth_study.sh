@@ -7,7 +7,7 @@
 # noise (benchmarks/vseq2pc_depth_range.py; both settings fixed before any run). Each is scored on the
 # validation drive (seed 23) with the full sequence, 1, 2 and 3 frames, and the network-free feature
 # match. The held-out drive (seed 7) is not read. About 16 minutes per variant (4 epochs) on 2 cores of
-# an AMD EPYC, plus 30 minutes for the drives when OUT/exact has none.
+# an AMD EPYC, plus about 11 minutes for the drives when OUT/exact has none.
 #
 #   bash benchmarks/vseq2pc_depth_study.sh [OUT] [EPOCHS] [VARIANT ...]
 #   (default OUT=out/vseq2pc; EPOCHS=4 stage-2 epochs; VARIANT exact_depth and/or depth25, default both)

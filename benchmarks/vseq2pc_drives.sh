@@ -3,7 +3,8 @@
 # training cities (seeds 5, 11, 13, 17, 19, 29), a validation city (23) and a held-out city (7). Each
 # drive is rendered to a bag (front camera with depth + labels, 64-beam labelled LiDAR), turned into a
 # cache (vseq2pc_cache) and the bag removed (several GB of raw images). Existing caches are kept.
-# About 3.5 minutes per drive on one core of an AMD EPYC; LANES=2 renders two drives at a time.
+# About 3 minutes per drive on one core of an AMD EPYC; LANES=2 renders two drives at a time (all eight:
+# 11 minutes).
 #
 #   [LANES=2] bash benchmarks/vseq2pc_drives.sh OUT [citysim option ...]
 #   e.g. bash benchmarks/vseq2pc_drives.sh out/vseq2pc/exact --depth-range 0 --depth-noise 0

@@ -3,8 +3,8 @@
 # 29), pick the epoch by Recall@1 on a validation drive (seed 23), evaluate on a held-out drive (seed 7):
 # each drive is a city of its own. Trained vs untrained vs a network-free feature match. These
 # are the commands behind the figures in README ("VSeq2PC") and the bundled
-# weights/vseq2pc_synth_*.pth. About 80 minutes on 2 idle cores of an AMD EPYC (drives ~3.5 min each,
-# training ~60 min, evaluation ~2 min).
+# weights/vseq2pc_synth_*.pth. About 75 minutes on 2 idle cores of an AMD EPYC (drives 11 min, two at a
+# time; training 62 min; evaluation ~2 min).
 #
 # The drives' depth images are what a monocular depth network gives (citysim's default for the kitti rig:
 # none beyond 25 m along the optical axis, a smooth 10 % error), not the renderer's exact depth: with

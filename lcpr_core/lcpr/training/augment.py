@@ -25,12 +25,21 @@ from ..preprocess.range_image import NO_RETURN
 from ..preprocess.turn import SLOT_YAWS_DEG, range_columns, slot_yaw_deg
 
 #: The quarters of an h x w range image the occlusion augmentation and the robustness study black out:
-#: name -> (rows, columns) of the quarter, the sector starting at column ``start``.
-LIDAR_QUARTERS: dict[str, Callable[[int, int, int], tuple[slice, slice]]] = {
-    "columns": lambda h, w, start: (slice(None), slice(start, start + w // 4)),  # a 90 deg sector, full height
-    "top rows": lambda h, w, start: (slice(0, h // 4), slice(None)),  # the upper beams, all the way round
-    "bottom rows": lambda h, w, start: (slice(h - h // 4, h), slice(None)),  # the lower beams
+#: name -> (rows, columns) of the quarter (the sector starts at column 0; :func:`occlude_lidar` turns it).
+LIDAR_QUARTERS: dict[str, Callable[[int, int], tuple[slice, slice]]] = {
+    "columns": lambda h, w: (slice(None), slice(0, w // 4)),  # a 90 deg sector, full height
+    "top rows": lambda h, w: (slice(0, h // 4), slice(None)),  # the upper beams, all the way round
+    "bottom rows": lambda h, w: (slice(h - h // 4, h), slice(None)),  # the lower beams
 }
+
+
+def lidar_quarter(part: str) -> Callable[[int, int], tuple[slice, slice]]:
+    """The (rows, columns) of one of :data:`LIDAR_QUARTERS`; an unknown part is refused, naming the accepted ones."""
+    try:
+        return LIDAR_QUARTERS[part]
+    except KeyError as err:
+        raise InvalidValueError(f"LiDAR part {part!r}; expected one of {', '.join(map(repr, LIDAR_QUARTERS))}"
+                                ) from err
 
 
 def occlude_lidar(ranges: np.ndarray, part: str, *, start: int = 0) -> np.ndarray:
@@ -38,11 +47,9 @@ def occlude_lidar(ranges: np.ndarray, part: str, *, start: int = 0) -> np.ndarra
 
     ``start``: the first column of the sector (``columns``); columns past the edge wrap round.
     """
-    if part not in LIDAR_QUARTERS:
-        raise InvalidValueError(f"LiDAR part {part!r}; expected one of {', '.join(map(repr, LIDAR_QUARTERS))}")
-    h, w = ranges.shape[-2:]
+    quarter = lidar_quarter(part)
     out = np.roll(ranges, -start, axis=-1)  # the sector at column 0, so it never splits at the edge
-    out[(..., *LIDAR_QUARTERS[part](h, w, 0))] = NO_RETURN
+    out[(..., *quarter(*ranges.shape[-2:]))] = NO_RETURN
     return np.roll(out, start, axis=-1)
 
 
