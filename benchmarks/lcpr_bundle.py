@@ -115,20 +115,37 @@ def main() -> None:
               else args.out / f"stage_e{chosen['epochs']}.pth")
     target = args.target or args.out / "lcpr_synth_narrow.pth"
     export(py, source, target, fp32=False)
-    final: dict[str, dict] = {}
-    for name in (*VALIDATION, *TEST):  # the test cities only now, after every choice
-        out = args.out / f"final_{name}"
-        run([py, "-m", "lcpr_ros.evaluate", str(args.corpus / f"{name}.bag"), "--weights", str(target),
-             "--threads", "2", "--quiet", "--no-verify", "--out", str(out)])
-        final[name] = online_methods(out / "report.json")
-    lcpr = next(iter(final[THRESHOLD_CITY]))
-    threshold = final[THRESHOLD_CITY][lcpr]["max_f1_threshold"]
+    final, lcpr, threshold = final_evaluation(py, args.corpus, target, args.out)
     cpu = cpu_model()
     text = json.dumps({"cpu": cpu, "points": points, "chosen_epoch": chosen["epochs"], "weights": str(target),
                        "max_distance": threshold, "final": final}, indent=1)
     write_atomic(args.out / "bundle.json", lambda tmp: tmp.write_text(text))
     _plot(points, chosen["epochs"], start_epoch, args.out / "bundle.png", cpu)
     _print(points, chosen, final, lcpr, threshold, cpu)
+
+
+def final_evaluation(py: str, corpus: Path, weights: Path, out: Path) -> tuple[dict[str, dict], str, float | None]:
+    """``lcpr_eval --no-verify`` of the chosen weights beside Scan Context on the validation cities and, only
+    then, the test cities (into ``OUT/final_CITY``): per city and method the online figures, the LCPR method's
+    name and its max-F1 threshold on :data:`THRESHOLD_CITY` (the operating threshold)."""
+    final: dict[str, dict] = {}
+    for name in (*VALIDATION, *TEST):  # the test cities only now, after every choice
+        folder = out / f"final_{name}"
+        run([py, "-m", "lcpr_ros.evaluate", str(corpus / f"{name}.bag"), "--weights", str(weights),
+             "--threads", "2", "--quiet", "--no-verify", "--out", str(folder)])
+        final[name] = online_methods(folder / "report.json")
+    lcpr = next(iter(final[THRESHOLD_CITY]))
+    return final, lcpr, final[THRESHOLD_CITY][lcpr]["max_f1_threshold"]
+
+
+def print_final(final: dict[str, dict], lcpr: str) -> None:
+    """The README's table of :func:`final_evaluation`: online Recall@1 / max F1 per city and method."""
+    others = [name for name in next(iter(final.values())) if name != lcpr]
+    print(f"| city (online protocol) | {lcpr} Recall@1 / max F1 | " + " | ".join(others) + " |")
+    print("|---|---|" + "---|" * len(others))
+    for city, methods in final.items():
+        cells = " | ".join(f"{methods[m]['recall@1']:.2f} / {methods[m]['max_f1']:.3f}" for m in [lcpr, *others])
+        print(f"| {city} | {cells} |")
 
 
 def _plot(points: list[dict], chosen: int, start_epoch: int, path: Path, cpu: str) -> None:
@@ -155,12 +172,7 @@ def _print(points: list[dict], chosen: dict, final: dict[str, dict], lcpr: str, 
     for pt in sorted(points, key=lambda pt: pt["epochs"]):
         print(f"| {pt['epochs']} | {pt['train_s'] / 60:.1f} | {validation_cells(pt)} | {pt['mean_recall@1']:.3f} |")
     print(f"chosen on validation: epoch {chosen['epochs']}; max-F1 threshold on {THRESHOLD_CITY}: {threshold}")
-    others = [name for name in next(iter(final.values())) if name != lcpr]
-    print(f"| city (online protocol) | {lcpr} Recall@1 / max F1 | " + " | ".join(others) + " |")
-    print("|---|---|" + "---|" * len(others))
-    for city, methods in final.items():
-        cells = " | ".join(f"{methods[m]['recall@1']:.2f} / {methods[m]['max_f1']:.3f}" for m in [lcpr, *others])
-        print(f"| {city} | {cells} |")
+    print_final(final, lcpr)
 
 
 if __name__ == "__main__":

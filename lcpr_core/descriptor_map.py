@@ -92,8 +92,10 @@ class DescriptorMap(RowAccess):
     Not thread-safe: share one map between threads behind a lock.
     """
 
-    def __init__(self, config: MapConfig | None = None) -> None:
+    def __init__(self, config: MapConfig | None = None, *, weights_id: str = "") -> None:
         self._config = config if config is not None else MapConfig()
+        #: what made the descriptors (lcpr_core.fingerprint, e.g. Describer.weights_id); "" = unknown
+        self.weights_id = weights_id
         self._index, self._storage = _make_index(self._config)
         self._ef_search = self._config.hnsw_ef_search
         self._rows = MapRows((3,))  # ids, stamps, poses (lcpr_core.map_rows)
@@ -294,6 +296,7 @@ class DescriptorMap(RowAccess):
             "schema_version": SCHEMA_VERSION,
             "dim": self.dim,
             "model": self._config.descriptor_tag,  # the file keeps its field name
+            "weights_id": self.weights_id,
             **self.config.index_params(),
             "count": len(self),
             "sources": self._source_names,
@@ -333,7 +336,10 @@ class DescriptorMap(RowAccess):
         config = expect if expect is not None else _config_from_header(header, where)
         x, ids, stamps, poses, codes = _check_arrays(data, header, where)
 
-        out = cls(config)
+        weights = header.get("weights_id", "")  # maps saved before it was recorded have none
+        if not isinstance(weights, str):
+            raise MapError(f"map file {where} header field 'weights_id' is {weights!r}; expected a string")
+        out = cls(config, weights_id=weights)
         if len(x):
             out._index.add(x)
         out._rows.append(ids, stamps, poses)

@@ -450,6 +450,7 @@ class MethodResult:
     database_query: ProtocolResult | None
     latency: dict[str, LatencyStats]
     timings: list[dict[str, float]] = field(default_factory=list, repr=False)
+    descriptors: np.ndarray | None = field(default=None, repr=False)  # (N, D) per keyframe; not in the JSON
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -475,7 +476,8 @@ def evaluate_method(
             n_values=n_values,
         )
     return MethodResult(name=run.name, distance=run.distance, online=online, database_query=dbq,
-                        latency=latency_stats(run.timings, warmup=warmup), timings=list(run.timings))
+                        latency=latency_stats(run.timings, warmup=warmup), timings=list(run.timings),
+                        descriptors=run.descriptors)
 
 
 # ============================================================================ verified loops

@@ -62,6 +62,8 @@ DOCS: dict[str, ParamDoc] = {
     "model.device": ParamDoc("torch device, e.g. cpu or cuda:0"),
     "model.threads": ParamDoc("torch intra-op threads; 0 = torch's default", 0, 1024),
     "model.fast_decode": ParamDoc("JPEG draft-mode decoding of compressed images (faster, slightly different pixels)"),
+    "model.whitening": ParamDoc("apply the descriptor whitening stored in the weights file, when it has one "
+                                "(the bundled weights do; lcpr_train --whiten)"),
     # ---- keyframes and matching (may change at run time)
     "keyframe.min_interval": ParamDoc("s (header stamps) between keyframes", 0.0, 3600.0, dynamic=True),
     "keyframe.min_distance": ParamDoc("m travelled between keyframes when poses are known; 0 = off",

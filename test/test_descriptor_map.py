@@ -1,6 +1,7 @@
 """DescriptorMap: adding, searching, time-window exclusion, saving and loading."""
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 from typing import TypeGuard
@@ -164,6 +165,20 @@ def test_a_saved_map_loads_back_with_the_same_ids_and_metadata(tmp_path: Path) -
     loaded_hits, saved_hits = back.search(x[3], k=5), m.search(x[3], k=5)
     assert single(loaded_hits) and single(saved_hits)
     assert [h.id for h in loaded_hits] == [h.id for h in saved_hits]
+
+
+def test_a_saved_map_keeps_which_weights_made_it_and_an_old_file_loads_as_unknown(tmp_path: Path) -> None:
+    m, _ = filled_map(5)
+    m.weights_id = "0123456789abcdef"
+    m.save(tmp_path / "map.npz")
+    assert DescriptorMap.load(tmp_path / "map.npz").weights_id == "0123456789abcdef"
+    with np.load(tmp_path / "map.npz") as z:
+        arrays = dict(z)
+    header = json.loads(str(arrays["header"].item()))
+    del header["weights_id"]  # as maps saved before the field existed
+    arrays["header"] = np.array(json.dumps(header))
+    np.savez(tmp_path / "old.npz", **arrays)
+    assert DescriptorMap.load(tmp_path / "old.npz").weights_id == ""
 
 
 def test_ids_continue_after_the_largest_loaded_id(tmp_path: Path) -> None:

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from lcpr_core.descriptor_map import DescriptorMap
+from lcpr_core.errors import MapSchemaError
 from lcpr_core.lcpr.describer import Describer
 from lcpr_core.lcpr.detector import DetectorConfig, Frame, KeyframeConfig, LoopDetector, MatchConfig, SensorConfig
 from lcpr_core.verification import VerifierConfig
@@ -17,6 +18,8 @@ RETRIEVAL_ONLY = VerifierConfig(enabled=False)  # these tests are about keyframi
 
 class PlaceDescriber:
     """Stands in for the network: the descriptor is a function of the place (first point)."""
+
+    weights_id = "place-test"  # what made the descriptors, as a Describer says
 
     def inputs(self, images, points):
         return torch.zeros(1), torch.as_tensor(np.asarray(points, np.float64)[:1])
@@ -163,3 +166,25 @@ def test_the_map_of_a_detector_saves_and_loads_with_every_keyframe(tmp_path):
     det.map.save(tmp_path / "map.npz")
     loaded = DescriptorMap.load(tmp_path / "map.npz")
     assert len(loaded) == 70 and loaded.ids.tolist() == list(range(70))
+
+
+def test_a_new_map_records_the_describer_that_fills_it():
+    assert detector().map.weights_id == "place-test"
+
+
+def test_a_prior_map_made_by_other_weights_is_refused_naming_both():
+    prior = DescriptorMap(weights_id="0123456789abcdef")
+    prior.add(np.eye(256, dtype=np.float32)[:1], stamps=[0.0])
+    with pytest.raises(MapSchemaError, match="weights 0123456789abcdef.*weights place-test"):
+        LoopDetector(DetectorConfig(verify=RETRIEVAL_ONLY), describer=place_describer(), prior_map=prior)
+
+
+def test_a_prior_map_that_does_not_say_which_weights_made_it_is_used_with_a_warning(caplog):
+    prior = DescriptorMap()
+    prior.add(np.eye(256, dtype=np.float32)[:1], stamps=[0.0])
+    with caplog.at_level("WARNING"):
+        det = LoopDetector(DetectorConfig(verify=RETRIEVAL_ONLY), describer=place_describer(), prior_map=prior)
+    assert len(det.map) == 1 and det.map.weights_id == ""
+    assert "does not record which weights made it" in caplog.text
+    empty = LoopDetector(DetectorConfig(verify=RETRIEVAL_ONLY), describer=place_describer(), prior_map=DescriptorMap())
+    assert empty.map.weights_id == "place-test"

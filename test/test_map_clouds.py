@@ -212,6 +212,8 @@ def test_a_map_with_inconsistent_clouds_is_refused_naming_the_file(tmp_path, cha
 class KeyedDescriber:
     """Stands in for the network: the first "image" names the descriptor to return."""
 
+    weights_id = "keyed-test"
+
     def __init__(self, table: dict[str, np.ndarray]) -> None:
         self.table = table
 

@@ -14,6 +14,8 @@ from lcpr_core.lcpr.detector import DetectorConfig, Frame, LoopDetector, MatchCo
 class AnyPlace:
     """Stands in for the network: random unit descriptors, so every older keyframe is a candidate."""
 
+    weights_id = "any-place-test"
+
     def __init__(self) -> None:
         self.rng = np.random.default_rng(0)
 
@@ -35,7 +37,7 @@ def test_a_drive_without_revisits_publishes_no_loop_although_every_candidate_is_
     gaps = np.linalg.norm(positions[:, None] - positions[None], axis=-1)[np.subtract.outer(stamps, stamps) >= 30.0]
     assert gaps.min() > 20.0, "the test drive must not revisit a place"
     det = LoopDetector(DetectorConfig(match=MatchConfig(top_k=10, max_distance=2.0)),
-                       describer=cast(Describer, AnyPlace()))  # it has the two methods the detector calls
+                       describer=cast(Describer, AnyPlace()))  # it has what the detector reads of a Describer
     verdicts: dict[str, int] = {}
     loops = 0
     for frame in drive.frames(workers=2):

@@ -14,11 +14,13 @@ import numpy as np
 import torch
 
 from ..errors import CheckpointError, InvalidValueError
+from ..fingerprint import tensors_id
 from .checkpoint import init_from_imagenet, load_weights
 from .models import LCPR
 from .preprocess import CUSTOM, LidarGeometry, LidarPreset, cameras_tensor, lidar_preset, range_image
 from .preprocess.camera import CameraInput
 from .runtime import Backend, Choice, choose_backend
+from .whitening import Whitening, read_whitening
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +51,7 @@ class ModelConfig:
     device: str = "cpu"
     threads: int = 0  # torch intra-op threads; 0 = leave torch's default
     fast_decode: bool = False  # JPEG draft-mode decoding of compressed images
+    whitening: bool = True  # apply the weights file's descriptor whitening, when it has one (.whitening)
 
     def __post_init__(self) -> None:
         if self.precision not in PRECISIONS:
@@ -172,6 +175,17 @@ class Describer:
             self.model = build_model(self.config)
         self.choice: Choice = choose_backend(self.config, self.model)
         self.backend: Backend = self.choice.backend  # the path descriptors are computed on
+        self.whitening: Whitening | None = None  # applied after the network, whatever the path
+        if self.config.whitening and self.config.weights:
+            self.whitening = read_whitening(self.config.weights)
+            if self.whitening is not None:
+                log.info("LCPR: descriptors whitened as stored in %s (%d of %d directions, power %g)",
+                         self.config.weights, self.whitening.dims, self.whitening.dim, self.whitening.power)
+        tensors = dict(self.model.state_dict())
+        if self.whitening is not None:
+            tensors |= {"whitening.mean": self.whitening.mean, "whitening.projection": self.whitening.projection}
+        #: what makes these descriptors (network and whitening), recorded in the descriptor maps they fill
+        self.weights_id: str = tensors_id(tensors)
 
     @property
     def path(self) -> str:
@@ -192,8 +206,9 @@ class Describer:
         return cams.unsqueeze(0), rng.view(1, 1, *rng.shape)
 
     def describe_tensors(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:
-        """Batched model inputs -> B x 256 float32 descriptors."""
-        return self.backend(images, ranges)
+        """Batched model inputs -> B x 256 float32 unit descriptors (whitened when the weights say so)."""
+        desc = self.backend(images, ranges)
+        return desc if self.whitening is None else self.whitening.apply(desc)
 
     def describe(self, images: Sequence[CameraInput | None], points: np.ndarray) -> np.ndarray:
         """One frame (N camera images, None for a missing one; N x >=3 points) -> 256 float32."""

@@ -25,6 +25,7 @@ descriptor. With verification off, ``Result.loop`` is the nearest candidate, as 
 from __future__ import annotations
 
 import dataclasses
+import logging
 import time
 from collections import OrderedDict
 from collections.abc import Sequence
@@ -34,12 +35,14 @@ from typing import cast
 import numpy as np
 
 from ..descriptor_map import DescriptorMap, MapConfig, Match
-from ..errors import InvalidValueError
+from ..errors import InvalidValueError, MapSchemaError
 from ..exclusion import matchable_prefix
 from ..keyframes import KeyframeConfig, keyframe_reason
 from ..verification import GeometricVerifier, PreparedCloud, Verification, VerifierConfig
 from .describer import Describer, ModelConfig
 from .preprocess.camera import CameraInput
+
+log = logging.getLogger(__name__)
 
 PREPARED_CACHE = 64  # prepared map clouds kept for the next queries (consecutive queries share candidates)
 
@@ -146,13 +149,31 @@ class LoopDetector:
     ) -> None:
         self.config = config = config if config is not None else DetectorConfig()
         self.describer = describer or Describer(config.model)
-        self.map = prior_map if prior_map is not None else DescriptorMap(config.map)
+        self.map = self._checked(prior_map) if prior_map is not None else DescriptorMap(
+            config.map, weights_id=self.describer.weights_id)
         self._session_start = len(self.map)  # rows before this index come from earlier sessions
         self._session_stamps: list[float] = []
         self._last_stamp = -np.inf
         self._last_position: np.ndarray | None = None
         self.verifier = GeometricVerifier(config.verify)
         self._prepared: OrderedDict[int, PreparedCloud] = OrderedDict()
+
+    def _checked(self, prior: DescriptorMap) -> DescriptorMap:
+        """A prior map whose descriptors this describer can search: made by the same weights (and whitening)."""
+        ours = self.describer.weights_id
+        if prior.weights_id and prior.weights_id != ours:
+            raise MapSchemaError(
+                f"the map's {len(prior)} descriptors were made by LCPR weights {prior.weights_id}, this detector "
+                f"runs weights {ours} (model.weights {self.config.model.weights or '(none)'}, with its whitening "
+                f"unless model.whitening is false); their distances would mean nothing. Load the weights the map "
+                f"was made with, or start a new map")
+        if not prior.weights_id:
+            if len(prior):
+                log.warning("the prior map (%d keyframes) does not record which weights made it (saved before "
+                            "maps did); it is used as it is: if other weights made it, start a new map", len(prior))
+            else:
+                prior.weights_id = ours
+        return prior
 
     @property
     def session_keyframes(self) -> int:

@@ -1,7 +1,6 @@
 """The two VSeq2PC networks together: queries -> sequence descriptors, scans -> slice descriptors."""
 from __future__ import annotations
 
-import hashlib
 import os
 from dataclasses import dataclass
 
@@ -9,6 +8,7 @@ import numpy as np
 import torch
 
 from ..errors import InputShapeError
+from ..fingerprint import tensors_id
 from .checkpoint import load_descriptor_state_dict, load_sequence_state_dict
 from .initialisation import seeded_models
 from .models import DescriptorModel, SequenceModel
@@ -93,12 +93,7 @@ def scan_slice_descriptors(descriptor: DescriptorModel, features: torch.Tensor) 
 
 def weights_id(descriptor: DescriptorModel) -> str:
     """A short hash of the descriptor model's parameters and buffers (name, dtype, shape, bytes)."""
-    h = hashlib.sha256()
-    for name, value in sorted(descriptor.state_dict().items()):
-        t = value.detach().cpu().contiguous()
-        h.update(f"{name}:{t.dtype}:{tuple(t.shape)};".encode())
-        h.update(t.numpy().tobytes() if t.dtype != torch.bfloat16 else t.float().numpy().tobytes())
-    return h.hexdigest()[:16]
+    return tensors_id(descriptor.state_dict())
 
 
 def _as_tensor(x: np.ndarray | torch.Tensor, tail: tuple[int, ...], what: str) -> torch.Tensor:

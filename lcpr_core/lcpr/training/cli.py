@@ -3,6 +3,7 @@
     lcpr_train BAG [BAG ...] --out DIR [--preset cpu|cpu_large|released] [--epochs N] [--lr LR] ...
     lcpr_train BAG ... --out DIR --resume --epochs 20      # continue from DIR/last.pth
     lcpr_train --export DIR/best.pth weights/lcpr_synth_narrow.pth   # small float16 copy
+    lcpr_train BAG ... --whiten DIR/best.pth DIR/whitened.pth        # descriptor whitening fitted on BAGs
 
 Frames are preprocessed once into DIR/cache (memory-mapped uint8 images, float16 range
 images); the split, mining and loss follow the paper (positives <= 9 m, negatives >= 18 m,
@@ -23,11 +24,13 @@ from pathlib import Path
 
 from ...errors import InvalidValueError, LcprError
 from ..preprocess import PRESETS as LIDAR_PRESETS
+from ..whitening import DEFAULT_DIMS, DEFAULT_POWER
 from .augment import AugmentConfig
 from .cache import build_cache
 from .config import NEGATIVE_RULES, PRESETS, MiningConfig, OptimConfig, SplitConfig, TrainConfig, input_preset
 from .dataset import TrainingData
 from .train import Trainer, export_weights
+from .whiten import whiten_checkpoint
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -41,6 +44,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--export", nargs=2, type=Path, metavar=("CHECKPOINT", "TARGET"), default=None,
                    help="write a small copy of CHECKPOINT (no optimizer state, float16) to TARGET and exit")
     p.add_argument("--export-fp32", action="store_true", help="with --export: keep float32 tensors")
+    p.add_argument("--whiten", nargs=2, type=Path, metavar=("CHECKPOINT", "TARGET"), default=None,
+                   help="describe every frame of BAGS with CHECKPOINT, fit a PCA whitening of its descriptors and "
+                        "write CHECKPOINT with it to TARGET, then exit (give the training bags, never test ones)")
+    p.add_argument("--whiten-power", type=float, default=DEFAULT_POWER,
+                   help=f"with --whiten: each direction scaled by eigenvalue ** -POWER (default {DEFAULT_POWER})")
+    p.add_argument("--whiten-dims", type=int, default=DEFAULT_DIMS,
+                   help=f"with --whiten: principal directions kept (default {DEFAULT_DIMS})")
     g = p.add_argument_group("model and inputs")
     g.add_argument("--preset", choices=list(PRESETS), default="cpu",
                    help="cpu: 64x192 images, 16x288 ranges, width 0.25; cpu_large: 128x352, 32x528, 0.5; "
@@ -121,6 +131,14 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if not args.bags:
         raise InvalidValueError("no bags given; usage: lcpr_train BAG [BAG ...] --out DIR")
+    if args.whiten:
+        checkpoint, target = args.whiten
+        w = whiten_checkpoint(checkpoint, target, args.bags, cache=args.cache or args.out / "cache",
+                              power=args.whiten_power, dims=args.whiten_dims, batch=args.eval_batch,
+                              device=args.device, progress=not args.quiet)
+        print(f"whitening fitted on {w.samples} frames ({w.dims} of {w.dim} directions, power {w.power:g}): "
+              f"{checkpoint} -> {target}")
+        return 0
     config = config_from_args(args)
     start = time.perf_counter()
     cache = build_cache(args.bags, args.cache or args.out / "cache", inputs=config.inputs, progress=not args.quiet)

@@ -32,6 +32,7 @@ from ...atomic import atomic_path
 from ...errors import CheckpointError, InvalidValueError
 from ..checkpoint import check_state_dict, init_from_imagenet, save_checkpoint
 from ..models import LCPR
+from ..whitening import ENTRY as WHITENING
 from .config import TrainConfig
 from .dataset import TrainingData
 from .loss import batch_triplet_loss
@@ -119,21 +120,10 @@ class Trainer:
         self.echo(f"resumed from {file} at epoch {self.epoch} (lr {self.optimizer.param_groups[0]['lr']:.3g})")
 
     # ------------------------------------------------------------------ descriptors
-    @torch.no_grad()
     def describe(self, samples: np.ndarray, desc: str = "describe") -> np.ndarray:
         """N x 256 descriptors (NaN rows for samples not listed), model in eval mode."""
-        self.model.eval()
-        out = np.full((len(self.data), self.model.descriptor_dim), np.nan, np.float32)
-        samples = np.unique(np.asarray(samples, np.int64))
-        batch = self.config.eval_batch
-        bar = progress_bar(len(samples), desc=desc, unit="sample", enabled=self.progress, leave=False)
-        for lo in range(0, len(samples), batch):
-            idx = samples[lo:lo + batch]
-            images, ranges = self.data.inputs(idx)
-            out[idx] = self.model(images.to(self.device), ranges.to(self.device)).float().cpu().numpy()
-            bar.update(len(idx))
-        bar.close()
-        return out
+        return describe_samples(self.model, self.data, samples, batch=self.config.eval_batch, device=self.device,
+                                progress=self.progress, desc=desc)
 
     def epoch_queries(self, epoch: int) -> np.ndarray:
         """The training queries of ``epoch`` (all, or a seeded random subset of ``queries_per_epoch``)."""
@@ -246,6 +236,23 @@ class Trainer:
                   f"(describe {r.get('describe_s', 0):.0f} s){extra}")
 
 
+@torch.no_grad()
+def describe_samples(model: LCPR, data: TrainingData, samples: np.ndarray, *, batch: int = 16,
+                     device: torch.device | str = "cpu", progress: bool = True, desc: str = "describe") -> np.ndarray:
+    """len(data) x 256 descriptors of ``samples`` (NaN rows for the others), ``model`` in eval mode."""
+    model.eval()
+    out = np.full((len(data), model.descriptor_dim), np.nan, np.float32)
+    samples = np.unique(np.asarray(samples, np.int64))
+    bar = progress_bar(len(samples), desc=desc, unit="sample", enabled=progress, leave=False)
+    for lo in range(0, len(samples), batch):
+        idx = samples[lo:lo + batch]
+        images, ranges = data.inputs(idx)
+        out[idx] = model(images.to(device), ranges.to(device)).float().cpu().numpy()
+        bar.update(len(idx))
+    bar.close()
+    return out
+
+
 def export_weights(source: str | os.PathLike[str], target: str | os.PathLike[str], *, half: bool = True) -> int:
     """Copy a checkpoint without optimizer state, floating tensors as float16 when ``half``; returns bytes.
 
@@ -258,6 +265,8 @@ def export_weights(source: str | os.PathLike[str], target: str | os.PathLike[str
     net = {k: (v.half() if half and v.is_floating_point() else v) for k, v in ckpt["net"].items()}
     payload = {"epoch": ckpt.get("epoch", 0), "net": net, "scheduler": ckpt.get("scheduler", {}),
                "config": ckpt.get("config"), "history": ckpt.get("history", [])}
+    if ckpt.get(WHITENING) is not None:  # float32 always: it is small and scales tiny directions up
+        payload[WHITENING] = ckpt[WHITENING]
     with atomic_path(target) as tmp:
         torch.save(payload, tmp)
         tmp.chmod(0o644)  # a file to ship: readable by all (temporary files start private)

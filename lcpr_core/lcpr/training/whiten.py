@@ -1,0 +1,57 @@
+"""Fitting a checkpoint's descriptor whitening on the frames of its training bags (``lcpr_train --whiten``)."""
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from ...errors import CheckpointError
+from ..describer import ModelConfig, build_model, checkpoint_config
+from ..whitening import DEFAULT_DIMS, DEFAULT_POWER, Whitening, fit_whitening, write_whitened
+from .cache import build_cache
+from .config import InputConfig
+from .dataset import TrainingData
+from .train import describe_samples
+
+
+def checkpoint_inputs(checkpoint: str | os.PathLike[str]) -> InputConfig:
+    """The inputs a checkpoint written by lcpr_train was trained on (its 'config' entry)."""
+    entry = checkpoint_config(checkpoint)
+    if not entry:
+        raise CheckpointError(f"{str(checkpoint)!r} has no 'config' entry (sizes and width); whitening is fitted "
+                              "on checkpoints written by lcpr_train")
+    return InputConfig(num_cameras=int(entry.get("num_cameras", 6)), image_size=tuple(entry["image_size"]),
+                       range_size=tuple(entry["range_size"]), lidar=str(entry.get("lidar", "nuscenes_lidar_top")),
+                       width=float(entry["width"]))
+
+
+def whiten_checkpoint(
+    checkpoint: str | os.PathLike[str],
+    target: str | os.PathLike[str],
+    bags: Sequence[str | os.PathLike[str]],
+    *,
+    cache: str | os.PathLike[str],
+    power: float = DEFAULT_POWER,
+    dims: int = DEFAULT_DIMS,
+    batch: int = 16,
+    device: str = "cpu",
+    progress: bool = True,
+) -> Whitening:
+    """Describe every frame of ``bags`` with ``checkpoint``, fit the whitening and write ``target``.
+
+    Fit it on the training bags, never on the cities it is evaluated on. The cache is built (or
+    reused) at the checkpoint's own input sizes.
+    """
+    inputs = checkpoint_inputs(checkpoint)
+    data = TrainingData.from_cache(build_cache(bags, cache, inputs=inputs, progress=progress))
+    model = build_model(ModelConfig(weights=os.fspath(checkpoint), precision="fp32")).to(torch.device(device))
+    desc = describe_samples(model, data, np.arange(len(data)), batch=batch, device=device, progress=progress,
+                            desc="describe for whitening")
+    whitening = fit_whitening(desc, power=power, dims=dims)
+    write_whitened(checkpoint, target, whitening)
+    return whitening
+
+
+__all__ = ["checkpoint_inputs", "whiten_checkpoint"]
