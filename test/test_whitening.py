@@ -97,6 +97,15 @@ def test_a_whitened_checkpoint_roundtrips_loads_without_code_and_survives_the_fl
     assert again is not None and np.array_equal(again.projection, w.projection)
 
 
+def test_a_checkpoint_in_torchs_legacy_format_is_read_too(checkpoint, tmp_path):
+    payload = torch.load(checkpoint, weights_only=True)
+    payload[ENTRY] = fitted().to_entry()
+    legacy = tmp_path / "legacy.pth"
+    torch.save(payload, legacy, _use_new_zipfile_serialization=False)  # cannot be memory-mapped
+    back = read_whitening(legacy)
+    assert back is not None and back.dims == 32
+
+
 def test_a_malformed_whitening_entry_is_refused_naming_the_file(checkpoint, tmp_path):
     payload = torch.load(checkpoint, weights_only=True)
     payload[ENTRY] = {"mean": torch.zeros(256), "projection": torch.zeros(256, 8)}

@@ -117,7 +117,10 @@ def read_whitening(path: str | os.PathLike[str]) -> Whitening | None:
     """The whitening stored in a checkpoint, or None when it has none (released files, state dicts)."""
     file = Path(path)
     try:
-        obj = torch.load(file, map_location="cpu", weights_only=True, mmap=True)
+        try:
+            obj = torch.load(file, map_location="cpu", weights_only=True, mmap=True)
+        except RuntimeError:  # files in torch's legacy (pre-zip) format cannot be memory-mapped
+            obj = torch.load(file, map_location="cpu", weights_only=True)
     except (pickle.UnpicklingError, RuntimeError, EOFError, OSError, ValueError) as err:
         raise CheckpointError(f"{str(file)!r} is not a readable PyTorch file: {err}") from err
     entry = obj.get(ENTRY) if isinstance(obj, Mapping) else None
