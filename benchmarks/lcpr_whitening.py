@@ -134,6 +134,10 @@ def main() -> None:
     data = TrainingData.from_cache(build_cache(train_bags, args.cache, inputs=checkpoint_inputs(args.weights)))
     model = build_model(ModelConfig(weights=str(args.weights), precision="fp32", threads=2))
     train_desc = describe_samples(model, data, np.arange(len(data)), desc="describe training cities")
+    eigenvalues = np.sort(np.linalg.eigvalsh(np.cov(train_desc.astype(np.float64), rowvar=False)))[::-1]
+    share = np.cumsum(eigenvalues) / eigenvalues.sum()
+    print(f"training descriptors ({len(train_desc)}): the first 16 principal directions hold {share[15]:.1%} of "
+          f"the variance, the last 100 hold {1 - share[-101]:.3%}")
     fits: dict[str, Whitening | None] = {"none": None}
     fits |= {f"power {a:g}, {k} dims": fit_whitening(train_desc, power=a, dims=k) for a in POWERS for k in DIMS}
 
