@@ -41,6 +41,22 @@ def write_bytes_atomic(path: str | os.PathLike[str], data: bytes) -> None:
     write_atomic(path, lambda tmp: tmp.write_bytes(data))
 
 
+def save_torch(obj: object, path: str | os.PathLike[str], *, shared: bool = False) -> int:
+    """``torch.save(obj)`` onto ``path`` atomically; returns the file's size in bytes.
+
+    Saved through an open file, so the archive's records are named ``archive/...`` and not after
+    the temporary file. ``shared``: readable by all (a file to ship; temporary files start private).
+    """
+    import torch  # here: the other writers of this module need no torch
+
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            torch.save(obj, fh)
+        if shared:
+            tmp.chmod(0o644)
+    return Path(path).stat().st_size
+
+
 def save_figure(fig: Any, path: str | os.PathLike[str], *, dpi: float | None = None) -> None:
     """Lay out a matplotlib figure and write it as a PNG, atomically (every plot of the package)."""
     fig.tight_layout()

@@ -3,12 +3,15 @@ from __future__ import annotations
 
 import logging
 import pickle
+import stat
+import zipfile
 from typing import Any
 
 import pytest
 import torch
 
 from lcpr_core import LCPR, CheckpointError, ModelConfig, build_model, init_from_imagenet, load_weights
+from lcpr_core.atomic import save_torch
 from lcpr_core.lcpr.checkpoint import save_checkpoint
 
 SMALL: dict[str, Any] = dict(num_cameras=2, image_size=(64, 128), range_size=(16, 256))
@@ -107,3 +110,12 @@ def test_model_sizes_are_constructor_options():
     assert out.shape == (2, 256)
     with pytest.raises(ValueError, match="expected B x 2 x 3 x 64 x 128"):
         model(torch.zeros(1, 6, 3, 64, 128), ranges[:1])
+
+
+def test_torch_files_are_written_whole_with_records_named_after_no_temporary_file(tmp_path):
+    size = save_torch({"net": {"w": torch.ones(3)}}, tmp_path / "ship.pth", shared=True)
+    assert size == (tmp_path / "ship.pth").stat().st_size
+    assert all(n.startswith("archive/") for n in zipfile.ZipFile(tmp_path / "ship.pth").namelist())
+    assert stat.S_IMODE((tmp_path / "ship.pth").stat().st_mode) == 0o644
+    assert torch.equal(torch.load(tmp_path / "ship.pth", weights_only=True)["net"]["w"], torch.ones(3))
+    assert [p.name for p in tmp_path.iterdir()] == ["ship.pth"]  # no temporary file left behind

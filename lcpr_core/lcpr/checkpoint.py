@@ -6,11 +6,12 @@ import os
 import pickle
 from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import torch
 from torch import nn
 
-from ..atomic import atomic_path
+from ..atomic import save_torch
 from ..errors import CheckpointError
 
 log = logging.getLogger(__name__)
@@ -27,6 +28,39 @@ IMAGENET_PREFIXES: dict[str, tuple[str, ...]] = {
 }
 
 
+def load_checkpoint(path: str | os.PathLike[str], *, mmap: bool = False) -> object:
+    """The object in a PyTorch file, loaded with ``weights_only=True`` so it cannot run code.
+
+    ``mmap``: map the tensors instead of reading them (cheap when only a small entry is wanted);
+    files in torch's legacy (pre-zip) format cannot be mapped and are read whole.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"weights file {str(path)!r} does not exist")
+    try:
+        try:
+            return torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
+        except RuntimeError:
+            if not mmap:
+                raise
+            return torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as err:
+        raise CheckpointError(
+            f"{str(path)!r} holds objects other than tensors and plain containers; it is refused "
+            f"because loading it could run code (weights_only=True): {err}"
+        ) from err
+    except (RuntimeError, EOFError, OSError, ValueError) as err:
+        raise CheckpointError(f"{str(path)!r} is not a readable PyTorch file: {err}") from err
+
+
+def read_released(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """A checkpoint in the released layout (a dict with a 'net' state dict), e.g. to copy with changes."""
+    obj = load_checkpoint(path)
+    if not isinstance(obj, dict) or "net" not in obj:
+        raise CheckpointError(f"{str(path)!r} is not a released-format checkpoint (no 'net' entry)")
+    return obj
+
+
 def read_state_dict(path: str | os.PathLike[str]) -> dict[str, torch.Tensor]:
     """Load a weights file without running code from it.
 
@@ -35,17 +69,7 @@ def read_state_dict(path: str | os.PathLike[str]) -> dict[str, torch.Tensor]:
     (DataParallel) is removed.
     """
     path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f"weights file {str(path)!r} does not exist")
-    try:
-        obj = torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as err:
-        raise CheckpointError(
-            f"{str(path)!r} holds objects other than tensors and plain containers; it is refused "
-            f"because loading it could run code (weights_only=True): {err}"
-        ) from err
-    except (RuntimeError, EOFError, OSError, ValueError) as err:
-        raise CheckpointError(f"{str(path)!r} is not a readable PyTorch file: {err}") from err
+    obj = load_checkpoint(path)
     state = _find_state_dict(obj, path)
     if state and all(k.startswith("module.") for k in state):
         state = {k[len("module."):]: v for k, v in state.items()}
@@ -105,8 +129,7 @@ def save_checkpoint(
     """Write ``{'epoch', 'net', 'scheduler', ...}`` (the released layout) atomically."""
     payload: dict[str, object] = {"epoch": epoch, "net": model.state_dict(), "scheduler": dict(scheduler or {})}
     payload.update(extra or {})
-    with atomic_path(path) as tmp:
-        torch.save(payload, tmp)
+    save_torch(payload, path)
 
 
 def init_from_imagenet(model: nn.Module, path: str | os.PathLike[str]) -> nn.Module:

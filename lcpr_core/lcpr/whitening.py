@@ -20,17 +20,16 @@ network by :class:`lcpr_core.lcpr.Describer` on every inference path.
 from __future__ import annotations
 
 import os
-import pickle
 from collections.abc import Mapping
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from ..atomic import atomic_path
+from ..atomic import save_torch
 from ..errors import CheckpointError, InputShapeError, InvalidValueError
+from .checkpoint import load_checkpoint, read_released
 
 ENTRY = "whitening"  # the checkpoint key
 DEFAULT_POWER = 0.5
@@ -116,26 +115,13 @@ def fit_whitening(descriptors: np.ndarray, *, power: float = DEFAULT_POWER, dims
 
 def read_whitening(path: str | os.PathLike[str]) -> Whitening | None:
     """The whitening stored in a checkpoint, or None when it has none (released files, state dicts)."""
-    file = Path(path)
-    try:
-        try:
-            obj = torch.load(file, map_location="cpu", weights_only=True, mmap=True)
-        except RuntimeError:  # files in torch's legacy (pre-zip) format cannot be memory-mapped
-            obj = torch.load(file, map_location="cpu", weights_only=True)
-    except (pickle.UnpicklingError, RuntimeError, EOFError, OSError, ValueError) as err:
-        raise CheckpointError(f"{str(file)!r} is not a readable PyTorch file: {err}") from err
+    obj = load_checkpoint(path, mmap=True)
     entry = obj.get(ENTRY) if isinstance(obj, Mapping) else None
-    return None if entry is None else Whitening.from_entry(entry, source=repr(str(file)))
+    return None if entry is None else Whitening.from_entry(entry, source=repr(str(path)))
 
 
 def write_whitened(source: str | os.PathLike[str], target: str | os.PathLike[str], whitening: Whitening) -> int:
     """Copy checkpoint ``source`` to ``target`` with ``whitening`` as its entry (atomic); returns bytes."""
-    obj = torch.load(source, map_location="cpu", weights_only=True)
-    if not isinstance(obj, dict) or "net" not in obj:
-        raise CheckpointError(f"{str(source)!r} is not a released-format checkpoint (no 'net' entry); "
-                              "whitening is stored beside 'net'")
+    obj = read_released(source)
     obj[ENTRY] = whitening.to_entry()
-    with atomic_path(target) as tmp:
-        torch.save(obj, tmp)
-        tmp.chmod(0o644)
-    return Path(target).stat().st_size
+    return save_torch(obj, target, shared=True)

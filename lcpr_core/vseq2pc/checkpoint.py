@@ -37,7 +37,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from ..atomic import atomic_path
+from ..atomic import save_torch
 from ..errors import CheckpointError, UnsafePickleError
 from ..lcpr.checkpoint import check_state_dict, read_state_dict
 from .models import DescriptorModel, SequenceModel
@@ -344,12 +344,10 @@ def load_descriptor_state_dict(path: str | os.PathLike[str], *, model: Descripto
 def save_sequence_weights(model: nn.Module, path: str | os.PathLike[str]) -> None:
     """Write the sequence model as a plain state dict (atomically)."""
     state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
-    with atomic_path(path) as tmp:
-        torch.save(state, tmp)
+    save_torch(state, path)
 
 
 def save_descriptor_weights(model: nn.Module, path: str | os.PathLike[str]) -> None:
     """Write the descriptor model as ``{'state_dict': ...}``, the released layout (atomically)."""
     state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
-    with atomic_path(path) as tmp:
-        torch.save({"state_dict": state}, tmp)
+    save_torch({"state_dict": state}, path)

@@ -28,9 +28,9 @@ import torch
 
 from msg_tools.progress import progress_bar
 
-from ...atomic import atomic_path
+from ...atomic import atomic_path, save_torch
 from ...errors import CheckpointError, InvalidValueError
-from ..checkpoint import check_state_dict, init_from_imagenet, save_checkpoint
+from ..checkpoint import check_state_dict, init_from_imagenet, read_released, save_checkpoint
 from ..models import LCPR
 from ..whitening import ENTRY as WHITENING
 from .config import TrainConfig
@@ -259,18 +259,13 @@ def export_weights(source: str | os.PathLike[str], target: str | os.PathLike[str
     The result is the released layout plus 'config' and 'history'; it loads with
     ``weights_only=True`` (float16 tensors are cast when loaded into the float32 model).
     """
-    ckpt = torch.load(source, map_location="cpu", weights_only=True)
-    if not isinstance(ckpt, dict) or "net" not in ckpt:
-        raise CheckpointError(f"{str(source)!r} is not a released-format checkpoint (no 'net' entry)")
+    ckpt = read_released(source)
     net = {k: (v.half() if half and v.is_floating_point() else v) for k, v in ckpt["net"].items()}
     payload = {"epoch": ckpt.get("epoch", 0), "net": net, "scheduler": ckpt.get("scheduler", {}),
                "config": ckpt.get("config"), "history": ckpt.get("history", [])}
     if ckpt.get(WHITENING) is not None:  # float32 always: it is small and scales tiny directions up
         payload[WHITENING] = ckpt[WHITENING]
-    with atomic_path(target) as tmp:
-        torch.save(payload, tmp)
-        tmp.chmod(0o644)  # a file to ship: readable by all (temporary files start private)
-    return Path(target).stat().st_size
+    return save_torch(payload, target, shared=True)  # a file to ship: readable by all
 
 
 def _pct(v: float) -> str:

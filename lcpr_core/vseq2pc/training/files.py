@@ -7,7 +7,7 @@ from pathlib import Path
 
 import torch
 
-from ...atomic import atomic_path
+from ...atomic import atomic_path, save_torch
 from ..checkpoint import (
     load_descriptor_state_dict,
     load_sequence_state_dict,
@@ -34,8 +34,7 @@ def _save(run: Run, out: Path, *, best: bool) -> None:
         "desc_opt": None if run.desc_opt is None else run.desc_opt.state_dict(),
         "history": json.dumps(run.history), "config": json.dumps(run.config.to_dict()),
     }
-    with atomic_path(out / STATE_FILE) as tmp:
-        torch.save(state, tmp)
+    save_torch(state, out / STATE_FILE)
     text = json.dumps({"config": run.config.to_dict(), "history": run.history}, indent=1)
     with atomic_path(out / "history.json") as tmp:
         tmp.write_text(text + "\n", encoding="utf-8")
