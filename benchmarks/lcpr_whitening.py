@@ -14,7 +14,8 @@ The plan and the rule were fixed before the validation cities were scored with a
 3. Score every variant on them. Rule: among the variants whose mean validation Recall@1 is at most
    1 point below the unwhitened descriptors', take the best mean validation max F1; whiten only if
    it beats the unwhitened one.
-4. Write the weights with the chosen whitening to ``OUT/lcpr_synth_narrow.pth`` and evaluate them
+4. Write the weights with the chosen whitening (and no turn averaging: ``lcpr_turn_average.py`` decides
+   that next, on this file) to ``OUT/lcpr_synth_narrow.pth`` and evaluate them
    with ``lcpr_eval --no-verify`` beside Scan Context on the validation cities (the max-F1
    threshold of grid seed 3 is the operating threshold, ``BUNDLED_MAX_DISTANCE``) and only then on
    the three test cities. Writes ``whitening.json``, ``whitening.png`` and prints the README's tables,
@@ -41,13 +42,16 @@ from lcpr_config_search import VALIDATION, finish_figure  # noqa: E402
 from lcpr_core.atomic import write_atomic  # noqa: E402
 from lcpr_core.evaluation import GroundTruth, online_protocol  # noqa: E402
 from lcpr_core.exclusion import matchable_prefix  # noqa: E402
+from lcpr_core.lcpr.checkpoint import copy_with  # noqa: E402
 from lcpr_core.lcpr.describer import ModelConfig, build_model  # noqa: E402
 from lcpr_core.lcpr.evaluate import EvalOptions, evaluate_bag  # noqa: E402
 from lcpr_core.lcpr.training.cache import build_cache  # noqa: E402
 from lcpr_core.lcpr.training.dataset import TrainingData  # noqa: E402
 from lcpr_core.lcpr.training.train import describe_samples  # noqa: E402
 from lcpr_core.lcpr.training.whiten import checkpoint_inputs  # noqa: E402
-from lcpr_core.lcpr.whitening import Whitening, fit_whitening, write_whitened  # noqa: E402
+from lcpr_core.lcpr.turn_average import ENTRY as TURN_AVERAGE  # noqa: E402
+from lcpr_core.lcpr.whitening import ENTRY as WHITENING  # noqa: E402
+from lcpr_core.lcpr.whitening import Whitening, fit_whitening  # noqa: E402
 from lcpr_core.timing import cpu_model  # noqa: E402
 from lcpr_core.verification import VerifierConfig  # noqa: E402
 
@@ -96,7 +100,8 @@ def gate_counts(descriptors: np.ndarray, gt: GroundTruth, gates: tuple[float, ..
 
 def validation_keyframes(bag: Path, weights: Path) -> tuple[np.ndarray, GroundTruth, dict[str, float]]:
     """Keyframe descriptors (no whitening), ground truth and the report's own online figures."""
-    opts = EvalOptions(model=ModelConfig(weights=str(weights), whitening=False, threads=2), scan_context=None,
+    opts = EvalOptions(model=ModelConfig(weights=str(weights), whitening=False, turn_average=False, threads=2),
+                       scan_context=None,
                        verify=VerifierConfig(enabled=False))
     report = evaluate_bag(bag, opts, progress=False)
     lcpr = report.methods[0]
@@ -161,7 +166,7 @@ def main() -> None:
     if fit is None:
         print("no whitening beats the unwhitened descriptors on validation; nothing written")
         return
-    write_whitened(args.weights, target, fit)
+    copy_with(args.weights, target, {WHITENING: fit.to_entry(), TURN_AVERAGE: False})  # whitening alone
     gates = {name: {"none": gate_counts(desc, gt), chosen: gate_counts(fit.apply(desc), gt)}
              for name, (desc, gt) in cities.items()}
     final, lcpr, threshold = final_evaluation(py, args.corpus, target, args.out)
@@ -171,10 +176,10 @@ def main() -> None:
     write_atomic(args.out / "whitening.json", lambda tmp: tmp.write_text(text))
     _plot(variants, chosen, args.out / "whitening.png")
     _print(variants, chosen, final, lcpr, threshold, cpu)
-    _print_gates(gates)
+    print_gates(gates)
 
 
-def _print_gates(gates: dict[str, dict]) -> None:
+def print_gates(gates: dict[str, dict]) -> None:
     print("| validation city, descriptors | " + " | ".join(
         f"gate {g:g}: loops closable / no-revisit keyframes verified" for g in GATES) + " |")
     print("|---|" + "---|" * len(GATES))

@@ -64,6 +64,8 @@ DOCS: dict[str, ParamDoc] = {
     "model.fast_decode": ParamDoc("JPEG draft-mode decoding of compressed images (faster, slightly different pixels)"),
     "model.whitening": ParamDoc("apply the descriptor whitening stored in the weights file, when it has one "
                                 "(the bundled weights do; lcpr_train --whiten)"),
+    "model.turn_average": ParamDoc("average each descriptor over the six camera-slot turns (six network passes) "
+                                   "when the weights file asks for it (the bundled weights do)"),
     # ---- keyframes and matching (may change at run time)
     "keyframe.min_interval": ParamDoc("s (header stamps) between keyframes", 0.0, 3600.0, dynamic=True),
     "keyframe.min_distance": ParamDoc("m travelled between keyframes when poses are known; 0 = off",

@@ -9,8 +9,8 @@
 
 Rooms (the same as VSeq2PC's, ``lcpr_core.vseq2pc``): models/ (the network), preprocess/ (range
 image, camera tensors, the camera-slot turn, dataset files), checkpoint (released files in, ours
-out), describer (config -> model, raw frame -> descriptor), whitening (the descriptor
-post-processing a checkpoint may carry), runtime/ (torch, exported-graph and
+out), describer (config -> model, raw frame -> descriptor), whitening and turn_average (the
+descriptor post-processing a checkpoint may carry), runtime/ (torch, exported-graph and
 int8 inference paths), detector (LoopDetector: what lcpr_node and lcpr_eval drive), training/
 (lcpr_train), evaluate (a bag through the detector and Scan Context: lcpr_eval), keyframe_demo
 (lcpr_keyframe_demo). The shared layer (descriptor map, verification, metrics, ground truth,

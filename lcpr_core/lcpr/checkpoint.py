@@ -61,6 +61,14 @@ def read_released(path: str | os.PathLike[str]) -> dict[str, Any]:
     return obj
 
 
+def copy_with(source: str | os.PathLike[str], target: str | os.PathLike[str], entries: Mapping[str, Any]) -> int:
+    """Copy released-format checkpoint ``source`` to ``target`` with ``entries`` set (atomic, readable by all);
+    returns bytes. How the descriptor post-processing (whitening, turn averaging) is added to weights."""
+    obj = read_released(source)
+    obj.update(entries)
+    return save_torch(obj, target, shared=True)
+
+
 def read_state_dict(path: str | os.PathLike[str]) -> dict[str, torch.Tensor]:
     """Load a weights file without running code from it.
 

@@ -20,6 +20,7 @@ from .models import LCPR
 from .preprocess import CUSTOM, LidarGeometry, LidarPreset, cameras_tensor, lidar_preset, range_image
 from .preprocess.camera import CameraInput
 from .runtime import Backend, Choice, choose_backend
+from .turn_average import TURNS, average_turns, read_turn_average, turned_batch
 from .whitening import Whitening, read_whitening
 
 log = logging.getLogger(__name__)
@@ -52,6 +53,7 @@ class ModelConfig:
     threads: int = 0  # torch intra-op threads; 0 = leave torch's default
     fast_decode: bool = False  # JPEG draft-mode decoding of compressed images
     whitening: bool = True  # apply the weights file's descriptor whitening, when it has one (.whitening)
+    turn_average: bool = True  # average over the six camera-slot turns when the weights file asks (.turn_average)
 
     def __post_init__(self) -> None:
         if self.precision not in PRECISIONS:
@@ -181,14 +183,26 @@ class Describer:
             if self.whitening is not None:
                 log.info("LCPR: descriptors whitened as stored in %s (%d of %d directions, power %g)",
                          self.config.weights, self.whitening.dims, self.whitening.dim, self.whitening.power)
+        #: six network passes per frame, their descriptors averaged (lcpr_core.lcpr.turn_average)
+        self.turn_average = bool(self.config.turn_average and self.config.weights
+                                 and read_turn_average(self.config.weights))
+        if self.turn_average:
+            if self.config.num_cameras != TURNS:
+                raise InvalidValueError(
+                    f"{self.config.weights} asks for turn averaging, defined for the {TURNS}-camera rig; "
+                    f"num_cameras={self.config.num_cameras} (set model.turn_average: false)")
+            log.info("LCPR: descriptors averaged over %d camera-slot turns as %s asks", TURNS, self.config.weights)
+
     @functools.cached_property
     def weights_id(self) -> str:
-        """What makes these descriptors (network and whitening), recorded in the descriptor maps they fill;
+        """What makes these descriptors (network, whitening, turn averaging), recorded in the maps they fill;
         hashed on first use (0.1 s at the released size on the AMD EPYC), as only a detector's map needs it."""
         assert self.model is not None  # set in __post_init__
         tensors: dict[str, torch.Tensor | np.ndarray] = dict(self.model.state_dict())
         if self.whitening is not None:
             tensors |= {"whitening.mean": self.whitening.mean, "whitening.projection": self.whitening.projection}
+        if self.turn_average:
+            tensors["turn_average"] = np.array([TURNS], np.int64)
         return tensors_id(tensors)
 
     @property
@@ -210,8 +224,14 @@ class Describer:
         return cams.unsqueeze(0), rng.view(1, 1, *rng.shape)
 
     def describe_tensors(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:
-        """Batched model inputs -> B x 256 float32 unit descriptors (whitened when the weights say so)."""
-        desc = self.backend(images, ranges)
+        """Batched model inputs -> B x 256 float32 unit descriptors (whitened and averaged over the turns
+        when the weights say so)."""
+        if not self.turn_average:
+            return self.postprocess(self.backend(images, ranges))
+        return average_turns(self.postprocess(self.backend(*turned_batch(images, ranges))), images.shape[0])
+
+    def postprocess(self, desc: np.ndarray) -> np.ndarray:
+        """B x 256 network outputs -> what the weights file's whitening makes of them (unit descriptors)."""
         return desc if self.whitening is None else self.whitening.apply(desc)
 
     def describe(self, images: Sequence[CameraInput | None], points: np.ndarray) -> np.ndarray:

@@ -27,9 +27,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..atomic import save_torch
 from ..errors import CheckpointError, InputShapeError, InvalidValueError
-from .checkpoint import load_checkpoint, read_released
+from .checkpoint import copy_with, load_checkpoint
 
 ENTRY = "whitening"  # the checkpoint key
 DEFAULT_POWER = 0.5
@@ -122,6 +121,4 @@ def read_whitening(path: str | os.PathLike[str]) -> Whitening | None:
 
 def write_whitened(source: str | os.PathLike[str], target: str | os.PathLike[str], whitening: Whitening) -> int:
     """Copy checkpoint ``source`` to ``target`` with ``whitening`` as its entry (atomic); returns bytes."""
-    obj = read_released(source)
-    obj[ENTRY] = whitening.to_entry()
-    return save_torch(obj, target, shared=True)
+    return copy_with(source, target, {ENTRY: whitening.to_entry()})

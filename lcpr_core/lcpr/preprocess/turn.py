@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from typing import TypeVar
 
 import numpy as np
+import torch
 
 from ...points import rotate_z
 
@@ -36,3 +37,12 @@ def turn_frame(images: Sequence[T], points: np.ndarray, k: int) -> tuple[list[T]
 def range_columns(yaw_deg: float, width: int) -> int:
     """Columns a range image shifts when the vehicle turns left by ``yaw_deg`` (the cloud by -yaw_deg)."""
     return round(yaw_deg * width / 360.0) % width
+
+
+def turn_inputs(images: torch.Tensor, ranges: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Batched model inputs (B x C x 3 x H x W, B x 1 x h x w) seen after turning left by k slots:
+    the preprocessed form of :func:`turn_frame` (cameras rolled by k, range columns by the slot's angle)."""
+    if k % images.shape[1] == 0:
+        return images, ranges
+    shift = range_columns(slot_yaw_deg(k), ranges.shape[-1])
+    return torch.roll(images, k, dims=1), torch.roll(ranges, shift, dims=-1)

@@ -4,6 +4,7 @@
     lcpr_train BAG ... --out DIR --resume --epochs 20      # continue from DIR/last.pth
     lcpr_train --export DIR/best.pth weights/lcpr_synth_narrow.pth   # small float16 copy
     lcpr_train BAG ... --whiten DIR/best.pth DIR/whitened.pth        # descriptor whitening fitted on BAGs
+    lcpr_train --turn-average on DIR/whitened.pth DIR/turned.pth     # descriptors averaged over the 6 turns
 
 Frames are preprocessed once into DIR/cache (memory-mapped uint8 images, float16 range
 images); the split, mining and loss follow the paper (positives <= 9 m, negatives >= 18 m,
@@ -24,6 +25,7 @@ from pathlib import Path
 
 from ...errors import InvalidValueError, LcprError
 from ..preprocess import PRESETS as LIDAR_PRESETS
+from ..turn_average import write_turn_average
 from ..whitening import DEFAULT_DIMS, DEFAULT_POWER
 from .augment import AugmentConfig
 from .cache import build_cache
@@ -51,6 +53,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"with --whiten: each direction scaled by eigenvalue ** -POWER (default {DEFAULT_POWER})")
     p.add_argument("--whiten-dims", type=int, default=DEFAULT_DIMS,
                    help=f"with --whiten: principal directions kept (default {DEFAULT_DIMS})")
+    p.add_argument("--turn-average", nargs=3, metavar=("on|off", "CHECKPOINT", "TARGET"), default=None,
+                   help="write CHECKPOINT to TARGET asking (on) or not (off) for descriptors averaged over the six "
+                        "camera-slot turns (six network passes per frame; lcpr_core.lcpr.turn_average), then exit")
     g = p.add_argument_group("model and inputs")
     g.add_argument("--preset", choices=list(PRESETS), default="cpu",
                    help="cpu: 64x192 images, 16x288 ranges, width 0.25; cpu_large: 128x352, 32x528, 0.5; "
@@ -128,6 +133,13 @@ def run(args: argparse.Namespace) -> int:
         size = export_weights(*args.export, half=not args.export_fp32)
         print(f"exported {args.export[0]} -> {args.export[1]} ({size / 2**20:.2f} MiB, "
               f"{'float32' if args.export_fp32 else 'float16'})")
+        return 0
+    if args.turn_average:
+        switch, checkpoint, target = args.turn_average
+        if switch not in ("on", "off"):
+            raise InvalidValueError(f"--turn-average {switch!r}; accepted: on, off")
+        size = write_turn_average(checkpoint, target, on=switch == "on")
+        print(f"turn averaging {switch}: {checkpoint} -> {target} ({size / 2**20:.2f} MiB)")
         return 0
     if not args.bags:
         raise InvalidValueError("no bags given; usage: lcpr_train BAG [BAG ...] --out DIR")

@@ -32,6 +32,7 @@ from ...atomic import atomic_path, save_torch
 from ...errors import CheckpointError, InvalidValueError
 from ..checkpoint import check_state_dict, init_from_imagenet, read_released, save_checkpoint
 from ..models import LCPR
+from ..turn_average import ENTRY as TURN_AVERAGE
 from ..whitening import ENTRY as WHITENING
 from .config import TrainConfig
 from .dataset import TrainingData
@@ -256,8 +257,9 @@ def describe_samples(model: LCPR, data: TrainingData, samples: np.ndarray, *, ba
 def export_weights(source: str | os.PathLike[str], target: str | os.PathLike[str], *, half: bool = True) -> int:
     """Copy a checkpoint without optimizer state, floating tensors as float16 when ``half``; returns bytes.
 
-    The result is the released layout plus 'config' and 'history'; it loads with
-    ``weights_only=True`` (float16 tensors are cast when loaded into the float32 model).
+    The result is the released layout plus 'config', 'history' and the descriptor post-processing entries
+    ('whitening', 'turn_average'); it loads with ``weights_only=True`` (float16 tensors are cast when
+    loaded into the float32 model).
     """
     ckpt = read_released(source)
     net = {k: (v.half() if half and v.is_floating_point() else v) for k, v in ckpt["net"].items()}
@@ -265,6 +267,8 @@ def export_weights(source: str | os.PathLike[str], target: str | os.PathLike[str
                "config": ckpt.get("config"), "history": ckpt.get("history", [])}
     if ckpt.get(WHITENING) is not None:  # float32 always: it is small and scales tiny directions up
         payload[WHITENING] = ckpt[WHITENING]
+    if TURN_AVERAGE in ckpt:
+        payload[TURN_AVERAGE] = ckpt[TURN_AVERAGE]
     return save_torch(payload, target, shared=True)  # a file to ship: readable by all
 
 
