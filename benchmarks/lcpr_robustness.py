@@ -5,7 +5,8 @@ database/query split, positives within 9 m) are perturbed, one condition at a ti
 
 - yaw: the vehicle turned by k camera slots: the six images rolled by k slots together with the
   cloud rotated by the same angle (nuScenes camera yaws: 55, 110, 180, 250, 305, 360 deg);
-- occlusion: each camera blacked out in turn (a zero slot, as a camera that stopped sending), and
+- occlusion: each camera blacked out in turn (a zero slot, as a camera that stopped sending), all
+  six at once (the LiDAR alone: what the images add), and
   a quarter of the LiDAR range image set to no return: its columns (a 90 deg sector, the full
   height), or its top or bottom quarter of rows (all the way round; the paper's "one quarter
   along the height dimension" reads either way, so both are reported);
@@ -83,10 +84,10 @@ def turned(k: int) -> Perturb:
     return describe
 
 
-def camera_out(index: int) -> Perturb:
+def camera_out(index: int | None) -> Perturb:
+    """Camera ``index`` sends nothing; None: none of them does (the LiDAR alone)."""
     def describe(describer: Describer, kf: Keyframe) -> np.ndarray:
-        images = list(kf.images)
-        images[index] = None
+        images = [None if index is None or i == index else im for i, im in enumerate(kf.images)]
         return describer.describe(images, kf.points)
     return describe
 
@@ -116,6 +117,7 @@ def conditions() -> dict[str, dict[str, Perturb | None]]:
     return {
         "yaw": {f"{slot_yaw_deg(k):g}": (None if k == TURNS[-1] else turned(k)) for k in TURNS},
         "occlusion": {"none": None, **{f"{name} out": camera_out(i) for i, name in enumerate(NUSCENES_CAMERAS)},
+                      "all cameras out": camera_out(None),
                       **{f"LiDAR 1/4 {part} out": lidar_quarter_out(part) for part in LIDAR_QUARTERS}},
         "lighting": {f"{f:g}": (None if f == 1.0 else brightness(f)) for f in BRIGHTNESS},
     }

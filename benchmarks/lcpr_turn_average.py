@@ -3,7 +3,8 @@
     python benchmarks/lcpr_turn_average.py [--corpus out/corpus] [--weights weights/lcpr_synth_narrow.pth]
                                            [--out out/turn_average]
 
-The plan and the rule were fixed before the turn-averaged descriptors were scored on validation:
+The plan and the rule (a scratch run on the same validation cities came first and showed the gain;
+no test city was read before this script had adopted and written the weights):
 
 1. Run the two *validation* cities through the detector (``lcpr_eval``'s path, retrieval only, as
    the weights describe a frame but without turn averaging) and keep, for each keyframe, the

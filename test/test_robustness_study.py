@@ -14,7 +14,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 from lcpr_lidar_occlusion import replaces  # noqa: E402
-from lcpr_robustness import Keyframe, lidar_quarter_out, parse_city, plot  # noqa: E402
+from lcpr_robustness import Keyframe, camera_out, lidar_quarter_out, parse_city, plot  # noqa: E402
 
 from lcpr_core.lcpr.describer import Describer  # noqa: E402
 from lcpr_core.lcpr.preprocess.range_image import NO_RETURN  # noqa: E402
@@ -45,6 +45,20 @@ def test_each_lidar_occlusion_blanks_exactly_its_quarter_of_the_range_image(part
     blank[rows, columns] = True
     assert np.all(out[blank] == NO_RETURN) and np.all(out[~blank] != NO_RETURN)
     assert blank.mean() == pytest.approx(0.25)
+
+
+class ImagesDescriber:
+    """Stands in for a Describer: the 'descriptor' says which camera slots received an image."""
+
+    def describe(self, images: list[Any], points: np.ndarray) -> np.ndarray:
+        return np.array([im is not None for im in images])
+
+
+@pytest.mark.parametrize(("index", "sent"), [(2, [1, 1, 0, 1, 1, 1]), (None, [0] * 6)])
+def test_a_camera_out_blanks_its_slot_and_all_cameras_out_leaves_the_lidar_alone(index: int | None,
+                                                                                  sent: list[int]) -> None:
+    kf = Keyframe(0.0, [np.zeros((2, 2, 3), np.uint8)] * 6, np.zeros((1, 3)), np.zeros(3))
+    assert camera_out(index)(cast(Describer, ImagesDescriber()), kf).astype(int).tolist() == sent
 
 
 def test_an_unknown_lidar_part_names_the_accepted_ones() -> None:
