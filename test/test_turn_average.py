@@ -133,3 +133,23 @@ def test_lcpr_train_turn_average_switches_the_entry_and_refuses_other_words(tmp_
     assert lcpr_train(["--turn-average", "yes", str(net), str(tmp_path / "x.pth")]) == 2
     assert "--turn-average 'yes'; accepted: on, off" in capsys.readouterr().err
     assert not (tmp_path / "x.pth").exists()
+
+
+def test_on_the_real_nuscenes_keyframe_the_bundled_averaged_descriptor_barely_moves_when_the_vehicle_turns(
+        nuscenes_sample):
+    from lcpr_core.lcpr.keyframe_demo import cosine
+    from lcpr_core.lcpr.preprocess.dataset_files import find_nuscenes_keyframe
+    from lcpr_core.pretrained import default_weights
+
+    images, points = find_nuscenes_keyframe(nuscenes_sample).read()
+    moved = points.copy()
+    moved[:, 1] -= 10.0  # the vehicle 10 m further on
+    change = {}
+    for averaged in (True, False):
+        d = Describer(ModelConfig(weights=str(default_weights()), precision="fp32", threads=2, turn_average=averaged))
+        assert d.turn_average is averaged  # the bundled file asks for it
+        desc = d.describe(images, points)
+        change[averaged] = (1 - cosine(desc, d.describe(*turn_frame(images, points, 1))),
+                            1 - cosine(desc, d.describe(images, moved)))
+    (turned, far), (turned_one_pass, _) = change[True], change[False]
+    assert turned < turned_one_pass / 5 and turned < far / 50
