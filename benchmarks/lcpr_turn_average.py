@@ -42,6 +42,7 @@ from lcpr_core.evaluation import GroundTruth  # noqa: E402
 from lcpr_core.lcpr.describer import Describer, ModelConfig  # noqa: E402
 from lcpr_core.lcpr.evaluate import EvalOptions, evaluate_bag  # noqa: E402
 from lcpr_core.lcpr.turn_average import TURNS, average_turns, turned_batch, write_turn_average  # noqa: E402
+from lcpr_core.lcpr.whitening import unit_rows  # noqa: E402
 from lcpr_core.timing import cpu_model  # noqa: E402
 from lcpr_core.verification import VerifierConfig  # noqa: E402
 
@@ -86,10 +87,9 @@ def variants(raw: np.ndarray, describer: Describer) -> dict[str, np.ndarray]:
     """Keyframe descriptors of each variant from the raw turned outputs (N x TURNS x D)."""
     n = len(raw)
     turn_major = raw.transpose(1, 0, 2).reshape(TURNS * n, -1)
-    mean = raw.mean(axis=1)
     return {"single": describer.postprocess(raw[:, 0]),
             "turn average": average_turns(describer.postprocess(turn_major), n),
-            "average, then whiten": describer.postprocess(mean / np.linalg.norm(mean, axis=1, keepdims=True))}
+            "average, then whiten": describer.postprocess(unit_rows(raw.mean(axis=1)))}
 
 
 def adopt(scores: dict[str, dict]) -> bool:

@@ -20,8 +20,8 @@ from .models import LCPR
 from .preprocess import CUSTOM, LidarGeometry, LidarPreset, cameras_tensor, lidar_preset, range_image
 from .preprocess.camera import CameraInput
 from .runtime import Backend, Choice, choose_backend
-from .turn_average import TURNS, average_turns, read_turn_average, turned_batch
-from .whitening import Whitening, read_whitening
+from .turn_average import TURNS, average_turns, turn_average_in, turned_batch
+from .whitening import Whitening, whitening_in
 
 log = logging.getLogger(__name__)
 
@@ -177,15 +177,17 @@ class Describer:
             self.model = build_model(self.config)
         self.choice: Choice = choose_backend(self.config, self.model)
         self.backend: Backend = self.choice.backend  # the path descriptors are computed on
-        self.whitening: Whitening | None = None  # applied after the network, whatever the path
-        if self.config.whitening and self.config.weights:
-            self.whitening = read_whitening(self.config.weights)
-            if self.whitening is not None:
-                log.info("LCPR: descriptors whitened as stored in %s (%d of %d directions, power %g)",
-                         self.config.weights, self.whitening.dims, self.whitening.dim, self.whitening.power)
+        # the descriptor post-processing the weights file carries, read from it once
+        stored = (load_checkpoint(self.config.weights, mmap=True)
+                  if self.config.weights and (self.config.whitening or self.config.turn_average) else None)
+        source = repr(self.config.weights)
+        #: applied after the network, whatever the path
+        self.whitening: Whitening | None = whitening_in(stored, source=source) if self.config.whitening else None
+        if self.whitening is not None:
+            log.info("LCPR: descriptors whitened as stored in %s (%d of %d directions, power %g)",
+                     self.config.weights, self.whitening.dims, self.whitening.dim, self.whitening.power)
         #: six network passes per frame, their descriptors averaged (lcpr_core.lcpr.turn_average)
-        self.turn_average = bool(self.config.turn_average and self.config.weights
-                                 and read_turn_average(self.config.weights))
+        self.turn_average = self.config.turn_average and turn_average_in(stored, source=source)
         if self.turn_average:
             if self.config.num_cameras != TURNS:
                 raise InvalidValueError(

@@ -159,13 +159,15 @@ class LoopDetector:
         self._prepared: OrderedDict[int, PreparedCloud] = OrderedDict()
 
     def _checked(self, prior: DescriptorMap) -> DescriptorMap:
-        """A prior map whose descriptors this describer can search: made by the same weights (and whitening)."""
+        """A prior map whose descriptors this describer can search: made by the same weights (whitening, turn
+        averaging)."""
         ours = self.describer.weights_id
         if prior.weights_id and prior.weights_id != ours:
             raise MapSchemaError(
                 f"the map's {len(prior)} descriptors were made by LCPR weights {prior.weights_id}, this detector "
-                f"runs weights {ours} (model.weights {self.config.model.weights or '(none)'}, with its whitening "
-                f"unless model.whitening is false); their distances would mean nothing. Load the weights the map "
+                f"runs weights {ours} (model.weights {self.config.model.weights or '(none)'}, with its whitening and "
+                f"turn averaging unless model.whitening / model.turn_average are false); their distances would "
+                f"mean nothing. Load the weights the map "
                 f"was made with, or start a new map")
         if not prior.weights_id:
             if len(prior):

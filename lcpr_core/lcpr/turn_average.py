@@ -25,10 +25,10 @@ import torch
 from ..errors import CheckpointError, InputShapeError
 from .checkpoint import copy_with, load_checkpoint
 from .preprocess.turn import SLOT_YAWS_DEG, turn_inputs
+from .whitening import unit_rows
 
 ENTRY = "turn_average"  # the checkpoint key: True when the file's descriptors are averaged over turns
 TURNS = len(SLOT_YAWS_DEG) + 1  # the nuScenes rig's six camera slots: turns by 0 .. 5 slots
-_EPS = 1e-12
 
 
 def turned_batch(images: torch.Tensor, ranges: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -46,17 +46,20 @@ def average_turns(descriptors: np.ndarray, batch: int) -> np.ndarray:
     if x.ndim != 2 or x.shape[0] != TURNS * batch:
         raise InputShapeError(f"descriptors of shape {x.shape}; expected {TURNS * batch} x D ({TURNS} turns of "
                               f"{batch} frames)")
-    mean = x.reshape(TURNS, batch, -1).mean(axis=0)
-    return (mean / np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), _EPS)).astype(np.float32)
+    return unit_rows(x.reshape(TURNS, batch, -1).mean(axis=0))
+
+
+def turn_average_in(checkpoint: object, *, source: str) -> bool:
+    """Whether a loaded checkpoint asks for turn averaging (False for files without the entry)."""
+    value = checkpoint.get(ENTRY, False) if isinstance(checkpoint, Mapping) else False
+    if not isinstance(value, bool):
+        raise CheckpointError(f"{source} has a '{ENTRY}' entry {value!r}; accepted: True or False")
+    return value
 
 
 def read_turn_average(path: str | os.PathLike[str]) -> bool:
-    """Whether a checkpoint asks for turn averaging (False for files without the entry)."""
-    obj = load_checkpoint(path, mmap=True)
-    value = obj.get(ENTRY, False) if isinstance(obj, Mapping) else False
-    if not isinstance(value, bool):
-        raise CheckpointError(f"{str(path)!r} has a '{ENTRY}' entry {value!r}; accepted: True or False")
-    return value
+    """Whether a checkpoint file asks for turn averaging (see :func:`turn_average_in`)."""
+    return turn_average_in(load_checkpoint(path, mmap=True), source=repr(str(path)))
 
 
 def write_turn_average(source: str | os.PathLike[str], target: str | os.PathLike[str], *, on: bool) -> int:
@@ -65,4 +68,5 @@ def write_turn_average(source: str | os.PathLike[str], target: str | os.PathLike
     return copy_with(source, target, {ENTRY: bool(on)})
 
 
-__all__ = ["ENTRY", "TURNS", "average_turns", "read_turn_average", "turned_batch", "write_turn_average"]
+__all__ = ["ENTRY", "TURNS", "average_turns", "read_turn_average", "turn_average_in", "turned_batch",
+           "write_turn_average"]

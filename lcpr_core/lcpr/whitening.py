@@ -63,8 +63,7 @@ class Whitening:
         x = np.asarray(descriptors, np.float32)
         if x.ndim != 2 or x.shape[1] != self.dim:
             raise InputShapeError(f"descriptors of shape {x.shape}; this whitening takes B x {self.dim}")
-        y = (x - self.mean) @ self.projection.T
-        return (y / np.maximum(np.linalg.norm(y, axis=1, keepdims=True), _EPS)).astype(np.float32)
+        return unit_rows((x - self.mean) @ self.projection.T)
 
     def to_entry(self) -> dict[str, Any]:
         """The checkpoint entry: float32 tensors and plain numbers."""
@@ -82,6 +81,11 @@ class Whitening:
                        samples=int(entry.get("samples", 0)))
         except (InputShapeError, InvalidValueError, TypeError, ValueError) as err:
             raise CheckpointError(f"{source}: its '{ENTRY}' entry cannot be used: {err}") from err
+
+
+def unit_rows(x: np.ndarray) -> np.ndarray:
+    """Each row scaled to unit length (float32): every descriptor post-processing ends with it."""
+    return (x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), _EPS)).astype(np.float32)
 
 
 def _array(value: object) -> np.ndarray:
@@ -112,11 +116,15 @@ def fit_whitening(descriptors: np.ndarray, *, power: float = DEFAULT_POWER, dims
                      dims=dims, samples=n)
 
 
+def whitening_in(checkpoint: object, *, source: str) -> Whitening | None:
+    """The whitening entry of a loaded checkpoint, or None when it has none (released files, state dicts)."""
+    entry = checkpoint.get(ENTRY) if isinstance(checkpoint, Mapping) else None
+    return None if entry is None else Whitening.from_entry(entry, source=source)
+
+
 def read_whitening(path: str | os.PathLike[str]) -> Whitening | None:
-    """The whitening stored in a checkpoint, or None when it has none (released files, state dicts)."""
-    obj = load_checkpoint(path, mmap=True)
-    entry = obj.get(ENTRY) if isinstance(obj, Mapping) else None
-    return None if entry is None else Whitening.from_entry(entry, source=repr(str(path)))
+    """The whitening stored in a checkpoint file (see :func:`whitening_in`)."""
+    return whitening_in(load_checkpoint(path, mmap=True), source=repr(str(path)))
 
 
 def write_whitened(source: str | os.PathLike[str], target: str | os.PathLike[str], whitening: Whitening) -> int:
