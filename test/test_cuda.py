@@ -61,3 +61,29 @@ def test_one_training_step_on_the_gpu_changes_the_weights(tmp_path: Path) -> Non
     torch.optim.Adam(model.parameters(), lr=1e-3).step()
     assert any(not torch.equal(b, p.detach()) for b, p in zip(before, model.parameters(), strict=True))
     assert np.isfinite(loss.item())
+
+
+def test_training_inputs_normalised_on_the_gpu_equal_the_cpu_ones() -> None:
+    from lcpr_core.lcpr.training.dataset import to_model_inputs
+
+    rng = np.random.default_rng(0)
+    images = rng.integers(0, 256, size=(2, 6, 32, 64, 3), dtype=np.uint8)
+    cameras = np.array([[True] * 6, [True, False, True, True, True, True]])
+    ranges = rng.uniform(-1, 50, size=(2, 8, 64)).astype(np.float16)
+    cpu = to_model_inputs(images, cameras, ranges)
+    gpu = to_model_inputs(images, cameras, ranges, device="cuda")
+    assert gpu[0].is_cuda and gpu[1].is_cuda
+    for a, b in zip(cpu, gpu, strict=True):
+        assert torch.allclose(a, b.cpu(), atol=1e-6)
+
+
+def test_bf16_autocast_training_step_on_the_gpu(tmp_path: Path) -> None:
+    import dataclasses
+
+    from lcpr_core.lcpr.training import Trainer, TrainingData, open_cache
+    from training_fixtures import tiny_config, write_tiny_cache
+
+    config = dataclasses.replace(tiny_config(), device="cuda", amp="bf16")
+    data = TrainingData.from_cache(open_cache(write_tiny_cache(tmp_path / "cache")), config.split)
+    history = Trainer(data, config, tmp_path / "run", progress=False, echo=lambda _: None).fit()
+    assert history[1]["loss"] is not None and np.isfinite(history[1]["loss"])

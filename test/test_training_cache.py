@@ -55,3 +55,22 @@ def test_the_cli_explains_a_drive_without_revisits(bag, tmp_path, capsys):
                        "8", "144", "--quiet"])
     assert code == 2
     assert "training needs train and val queries" in capsys.readouterr().err
+
+
+def test_several_workers_make_the_same_cache_as_one_process(bag, tmp_path):
+    other = tmp_path / "other.bag"
+    write_bag(SyntheticDrive(SynthConfig(frames=2, seed=4, image_size=(200, 112))), other, workers=1)
+    one = build_cache([bag, other], tmp_path / "one", inputs=SMALL, progress=False)
+    two = build_cache([bag, other], tmp_path / "two", inputs=SMALL, progress=False, workers=2)
+    assert len(two) == 5 and two.groups.tolist() == [0, 0, 0, 1, 1]
+    for name in ("images", "cameras", "ranges", "poses", "stamps", "groups"):
+        assert np.array_equal(getattr(one, name), getattr(two, name)), name
+    assert two.meta["samples_per_bag"] == one.meta["samples_per_bag"] == [3, 2]
+    assert {p.name for p in (tmp_path / "two").iterdir()} == {p.name for p in (tmp_path / "one").iterdir()}
+    again = build_cache([bag, other], tmp_path / "two", inputs=SMALL, progress=False, workers=2)
+    assert (again.folder / "images.npy").stat().st_mtime_ns == (two.folder / "images.npy").stat().st_mtime_ns
+
+
+def test_zero_workers_are_refused_by_name(bag, tmp_path):
+    with pytest.raises(CacheError, match="workers=0"):
+        build_cache([bag], tmp_path / "cache", inputs=SMALL, progress=False, workers=0)

@@ -87,3 +87,60 @@ def test_the_checkpoint_config_roundtrips_into_the_describer_and_a_float16_expor
     with torch.inference_mode():
         assert np.allclose(half(images, ranges).numpy(), full(images, ranges).numpy(), atol=2e-2)
     assert checkpoint_config(tmp_path / "run" / "init.pth") == entry
+
+
+def test_a_time_budget_cuts_the_epoch_short_and_stops_there(data, tmp_path):
+    config = dataclasses.replace(tiny_config(), optim=dataclasses.replace(tiny_config().optim, epochs=5,
+                                                                           time_budget_s=1e-6))
+    said: list[str] = []
+    history = Trainer(data, config, tmp_path / "run", progress=False, echo=said.append).fit()
+    assert [h["epoch"] for h in history] == [0, 1]
+    assert history[1]["cut_short"] and history[1]["trained"] == 0 and history[1]["loss"] is None
+    assert any("time budget" in line and "during epoch 1" in line for line in said)
+
+
+def test_a_generous_time_budget_changes_nothing(data, tmp_path):
+    config = dataclasses.replace(tiny_config(), optim=dataclasses.replace(tiny_config().optim, epochs=2,
+                                                                           time_budget_s=1e6))
+    history = Trainer(data, config, tmp_path / "run", progress=False, echo=quiet).fit()
+    assert [h["epoch"] for h in history] == [0, 1, 2]
+    assert not any(h.get("cut_short") for h in history) and history[2]["trained"] == history[2]["tuples"]
+
+
+def test_bf16_autocast_trains_and_describes_close_to_float32(data, tmp_path):
+    fp32 = Trainer(data, tiny_config(), tmp_path / "a", progress=False, echo=quiet)
+    bf16 = Trainer(data, dataclasses.replace(tiny_config(), amp="bf16"), tmp_path / "b", progress=False, echo=quiet)
+    samples = np.arange(len(data))
+    a, b = fp32.describe(samples), bf16.describe(samples)  # same seed: the same initial weights
+    assert not np.array_equal(a, b)  # bf16 really ran
+    cos = np.sum(a * b, axis=1) / np.linalg.norm(a, axis=1) / np.linalg.norm(b, axis=1)
+    assert cos.min() > 0.99
+    history = bf16.fit()
+    assert history[1]["loss"] is not None and np.isfinite(history[1]["loss"])
+
+
+def test_an_unknown_amp_mode_is_refused_by_name():
+    with pytest.raises(ValueError, match="amp='fp8'.*off, bf16"):
+        dataclasses.replace(tiny_config(), amp="fp8")
+
+
+def test_the_cli_builds_the_time_budget_and_amp_into_the_config():
+    from lcpr_core.lcpr.training.cli import build_parser, config_from_args
+
+    args = build_parser().parse_args(["a.bag", "--time-budget", "300", "--amp", "bf16", "--cache-workers", "4"])
+    config = config_from_args(args)
+    assert config.optim.time_budget_s == 300 and config.amp == "bf16" and args.cache_workers == 4
+
+
+def test_the_gpu_forward_benchmark_prints_medians_for_both_precisions_and_batches(capsys):
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from lcpr_gpu_forward import main as forward_main
+
+    assert forward_main(["--device", "cpu", "--small", "--repeats", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "width 0.25, 6 x 64x192 images" in out
+    for line in ("fp32: one pass", "bf16: one pass"):
+        assert line in out and "turn-averaged (six turns, batch 6)" in out

@@ -102,16 +102,25 @@ def build_cache(
     inputs: InputConfig,
     progress: bool = True,
     rebuild: bool = False,
+    workers: int = 1,
 ) -> SampleCache:
-    """Preprocess every synchronised frame with a pose of ``bags`` into ``folder`` (reused when up to date)."""
+    """Preprocess every synchronised frame with a pose of ``bags`` into ``folder`` (reused when up to date).
+
+    ``workers`` > 1 preprocesses that many bags at a time in separate processes, each into a
+    one-bag cache, then joins them in the order given: the same arrays as one process makes.
+    """
     if not bags:
         raise CacheError("no bags given; expected at least one rosbag2 with cameras, LiDAR and odometry")
+    if workers < 1:
+        raise CacheError(f"workers={workers}; it must be at least 1 (processes preprocessing bags at a time)")
     root = Path(folder)
     meta = cache_meta(bags, inputs)
     if not rebuild and (root / "meta.json").is_file():
         cache = open_cache(root)
         if _same_meta({k: v for k, v in cache.meta.items() if k in meta}, meta):
             return cache
+    if workers > 1 and len(bags) > 1:
+        return _build_in_parts(bags, root, meta, inputs=inputs, progress=progress, workers=workers)
     # Import here: msg_tools is only needed to build a cache, not to train from one.
     from msg_tools.bags import read_frames
     from msg_tools.frames import KITTI_TOPICS, NUSCENES_TOPICS
@@ -166,6 +175,51 @@ def build_cache(
         raise CacheError(f"no frame with a pose in {', '.join(map(str, bags))} ({frames} frames read); "
                          f"training needs odometry (ground-truth poses)")
     meta |= {"samples": count, "samples_per_bag": per_bag, "frames_read": frames, "without_pose": without_pose,
+             "build_seconds": round(time.perf_counter() - start, 1)}
+    (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
+    shutil.rmtree(root, ignore_errors=True)
+    os.replace(tmp, root)
+    return open_cache(root)
+
+
+def _build_in_parts(bags: Sequence[str | os.PathLike[str]], root: Path, meta: dict[str, Any], *,
+                    inputs: InputConfig, progress: bool, workers: int) -> SampleCache:
+    """One-bag caches built ``workers`` at a time, joined into ``root`` (bag k's rows are group k)."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    start = time.perf_counter()
+    tmp = root.with_name(root.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    folders = [tmp / f"bag{k}" for k in range(len(bags))]
+    with ProcessPoolExecutor(max_workers=min(workers, len(bags))) as pool:
+        jobs = [pool.submit(build_cache, [bag], part, inputs=inputs, progress=False)
+                for bag, part in zip(bags, folders, strict=True)]
+        bar = progress_bar(len(jobs), desc="cache bags", unit="bag", enabled=progress)
+        parts: list[SampleCache] = []
+        for job in jobs:  # in order: the first error raised is the first bag's
+            parts.append(job.result())
+            bar.update(1)
+        bar.close()
+    count = sum(len(p) for p in parts)
+    joined = {name: np.lib.format.open_memmap(tmp / f"{name}.npy", "w+", getattr(parts[0], name).dtype,
+                                              (count, *getattr(parts[0], name).shape[1:])) for name in ARRAYS}
+    row = 0
+    for group, part in enumerate(parts):
+        rows = slice(row, row + len(part))
+        for name in ARRAYS:
+            joined[name][rows] = group if name == "groups" else getattr(part, name)
+        row += len(part)
+    for array in joined.values():
+        array.flush()
+    del joined
+    part_meta = [p.meta for p in parts]
+    del parts
+    for folder in folders:
+        shutil.rmtree(folder)
+    meta |= {"samples": count, "samples_per_bag": [m["samples"] for m in part_meta],
+             "frames_read": sum(m["frames_read"] for m in part_meta),
+             "without_pose": sum(m["without_pose"] for m in part_meta),
              "build_seconds": round(time.perf_counter() - start, 1)}
     (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
     shutil.rmtree(root, ignore_errors=True)

@@ -5,6 +5,7 @@
     lcpr_train --export DIR/best.pth weights/lcpr_synth_narrow.pth   # small float16 copy
     lcpr_train BAG ... --whiten DIR/best.pth DIR/whitened.pth        # descriptor whitening fitted on BAGs
     lcpr_train --turn-average on DIR/whitened.pth DIR/turned.pth     # descriptors averaged over the 6 turns
+    lcpr_train BAG ... --out DIR --preset released --device cuda --amp bf16 --time-budget 3600   # a GPU
 
 Frames are preprocessed once into DIR/cache (memory-mapped uint8 images, float16 range
 images); the split, mining and loss follow the paper (positives <= 9 m, negatives >= 18 m,
@@ -29,7 +30,16 @@ from ..turn_average import write_turn_average
 from ..whitening import DEFAULT_DIMS, DEFAULT_POWER
 from .augment import AugmentConfig
 from .cache import build_cache
-from .config import NEGATIVE_RULES, PRESETS, MiningConfig, OptimConfig, SplitConfig, TrainConfig, input_preset
+from .config import (
+    AMP_MODES,
+    NEGATIVE_RULES,
+    PRESETS,
+    MiningConfig,
+    OptimConfig,
+    SplitConfig,
+    TrainConfig,
+    input_preset,
+)
 from .dataset import TrainingData
 from .train import Trainer, export_weights
 from .whiten import whiten_checkpoint
@@ -42,6 +52,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, default=Path("out/train"), help="output folder (default out/train)")
     p.add_argument("--cache", type=Path, default=None, help="preprocessed-sample folder (default OUT/cache)")
     p.add_argument("--rebuild-cache", action="store_true", help="preprocess again even if the cache is up to date")
+    p.add_argument("--cache-workers", type=int, default=1,
+                   help="bags preprocessed at a time, each in its own process (default 1)")
     p.add_argument("--resume", action="store_true", help="continue from OUT/last.pth (epochs count on)")
     p.add_argument("--export", nargs=2, type=Path, metavar=("CHECKPOINT", "TARGET"), default=None,
                    help="write a small copy of CHECKPOINT (no optimizer state, float16) to TARGET and exit")
@@ -90,6 +102,11 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--queries-per-epoch", type=int, default=0, help="random training queries per epoch (0 = all)")
     g.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
     g.add_argument("--device", default="cpu", help="torch device, e.g. cuda:0 (default cpu)")
+    g.add_argument("--amp", choices=AMP_MODES, default="off",
+                   help="off: float32; bf16: forward passes under bfloat16 autocast, for GPUs (default off)")
+    g.add_argument("--time-budget", type=float, default=0.0, metavar="SECONDS",
+                   help="begin no epoch that would end past SECONDS of training, judged by the last epoch's "
+                        "time, and cut short one still running then (default 0: none; --epochs still caps the run)")
     g.add_argument("--eval-batch", type=int, default=16, help="samples per forward when describing (default 16)")
     g.add_argument("--quiet", action="store_true", help="no progress bars")
     g = p.add_argument_group("augmentation of the training inputs (off by default)")
@@ -119,9 +136,10 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
                           exclude_recent_s=args.exclude_recent, fractions=tuple(args.fractions), seed=args.seed),
         mining=MiningConfig(negatives=args.negatives, margin=args.margin, pool=args.pool, rule=args.negative_rule),
         optim=OptimConfig(epochs=args.epochs, lr=args.lr, gamma=args.gamma, step_epochs=args.step_epochs,
-                          queries_per_batch=args.batch, queries_per_epoch=args.queries_per_epoch),
+                          queries_per_batch=args.batch, queries_per_epoch=args.queries_per_epoch,
+                          time_budget_s=args.time_budget),
         seed=args.seed, imagenet=args.imagenet, threads=args.threads, eval_batch=args.eval_batch,
-        device=args.device,
+        device=args.device, amp=args.amp,
         augment=AugmentConfig(yaw=args.augment_yaw, lighting=args.augment_lighting,
                               brightness=tuple(args.brightness), camera_drop=args.augment_camera_drop,
                               lidar_occlusion=args.augment_lidar_occlusion),
@@ -153,7 +171,8 @@ def run(args: argparse.Namespace) -> int:
         return 0
     config = config_from_args(args)
     start = time.perf_counter()
-    cache = build_cache(args.bags, args.cache or args.out / "cache", inputs=config.inputs, progress=not args.quiet)
+    cache = build_cache(args.bags, args.cache or args.out / "cache", inputs=config.inputs, progress=not args.quiet,
+                        rebuild=args.rebuild_cache, workers=args.cache_workers)
     data = TrainingData.from_cache(cache, config.split)
     print(f"samples: {len(cache)} from {len(args.bags)} bag(s) (cache {cache.folder}, "
           f"built in {cache.meta.get('build_seconds', 0):.0f} s); split {data.split.summary()}", flush=True)

@@ -9,6 +9,7 @@ from ..preprocess import lidar_preset
 from .augment import AugmentConfig
 
 NEGATIVE_RULES = ("violating", "absolute")
+AMP_MODES = ("off", "bf16")
 
 
 @dataclass(frozen=True)
@@ -107,6 +108,9 @@ class OptimConfig:
     queries_per_batch: int = 4  # each brings 1 + 1 + up to `negatives` samples
     queries_per_epoch: int = 0  # 0 = all training queries; else a random subset each epoch
     weight_decay: float = 0.0
+    # 0 = none; else no epoch is begun that would end past it (judged by the last one's time), and an epoch
+    # still running when it is reached is cut short
+    time_budget_s: float = 0.0
 
     def __post_init__(self) -> None:
         if self.epochs < 1:
@@ -123,6 +127,8 @@ class OptimConfig:
             raise InvalidValueError(f"queries_per_epoch={self.queries_per_epoch}; it must be >= 0 (0 = all)")
         if self.weight_decay < 0:
             raise InvalidValueError(f"weight_decay={self.weight_decay}; it must be >= 0")
+        if not self.time_budget_s >= 0:
+            raise InvalidValueError(f"time_budget_s={self.time_budget_s}; it must be >= 0 seconds (0 = none)")
 
 
 @dataclass(frozen=True)
@@ -138,6 +144,7 @@ class TrainConfig:
     threads: int = 2  # torch intra-op threads
     eval_batch: int = 16  # samples per forward when caching descriptors
     device: str = "cpu"  # torch device, e.g. cuda:0 for the released preset
+    amp: str = "off"  # off: float32 throughout; bf16: forward passes under bfloat16 autocast (GPUs)
     augment: AugmentConfig = field(default_factory=AugmentConfig)  # off by default
 
     def __post_init__(self) -> None:
@@ -145,6 +152,8 @@ class TrainConfig:
             raise InvalidValueError(f"threads={self.threads}; it must be at least 1")
         if self.eval_batch < 1:
             raise InvalidValueError(f"eval_batch={self.eval_batch}; it must be at least 1")
+        if self.amp not in AMP_MODES:
+            raise InvalidValueError(f"amp={self.amp!r}; accepted: {', '.join(AMP_MODES)}")
         if self.imagenet and self.inputs.width != 1.0:
             raise InvalidValueError(f"imagenet={self.imagenet!r} needs width 1.0 (torchvision resnet18 shapes); "
                                     f"got width={self.inputs.width}")

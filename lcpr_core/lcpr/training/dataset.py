@@ -18,16 +18,20 @@ _MEAN = torch.tensor(IMAGENET_MEAN).view(1, 1, 3, 1, 1)
 _STD = torch.tensor(IMAGENET_STD).view(1, 1, 3, 1, 1)
 
 
-def to_model_inputs(images: np.ndarray, cameras: np.ndarray, ranges: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+def to_model_inputs(images: np.ndarray, cameras: np.ndarray, ranges: np.ndarray, *,
+                    device: torch.device | str | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """B x C x H x W x 3 uint8, B x C presence, B x h x w ranges -> (B x C x 3 x H x W, B x 1 x h x w) float32.
 
     The same arithmetic as :func:`lcpr_core.lcpr.preprocess.camera_tensor` (scale to [0, 1],
     ImageNet normalisation); a missing camera is all zeros, as :func:`cameras_tensor` makes it.
+    With ``device`` the uint8 images travel there first and are normalised there (a quarter of
+    the bytes to copy, and the arithmetic on the GPU).
     """
-    x = torch.from_numpy(np.ascontiguousarray(images)).permute(0, 1, 4, 2, 3).float().div_(255)
-    x = x.sub_(_MEAN).div_(_STD)
-    x *= torch.from_numpy(np.asarray(cameras, bool)).view(*x.shape[:2], 1, 1, 1)
-    r = torch.from_numpy(np.asarray(ranges, np.float32)).unsqueeze(1)
+    dev = torch.device("cpu") if device is None else torch.device(device)
+    x = torch.from_numpy(np.ascontiguousarray(images)).to(dev).permute(0, 1, 4, 2, 3).float().div_(255)
+    x = x.sub_(_MEAN.to(dev)).div_(_STD.to(dev))
+    x *= torch.from_numpy(np.asarray(cameras, bool)).to(dev).view(*x.shape[:2], 1, 1, 1)
+    r = torch.from_numpy(np.asarray(ranges, np.float32)).to(dev).unsqueeze(1)
     return x, r
 
 
@@ -46,9 +50,11 @@ class TrainingData:
         return len(self.cache)
 
     def inputs(self, indices: Sequence[int] | np.ndarray, *, augmentation: AugmentConfig | None = None,
-               rng: np.random.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """Model inputs of the given samples, in the given order (repeats allowed); with ``augmentation``
-        (and its ``rng``) each sample possibly turned, relit or missing a camera (:mod:`.augment`)."""
+               rng: np.random.Generator | None = None,
+               device: torch.device | str | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Model inputs of the given samples, in the given order (repeats allowed), on ``device`` (default
+        the CPU); with ``augmentation`` (and its ``rng``) each sample possibly turned, relit or missing a
+        camera (:mod:`.augment`)."""
         idx = np.asarray(indices, np.int64)
         order = np.argsort(idx, kind="stable")  # sorted reads are kinder to the memory map
         back = np.empty_like(order)
@@ -59,4 +65,4 @@ class TrainingData:
             if rng is None:
                 raise InvalidValueError("augmentation needs an rng (a numpy Generator); got None")
             imgs, cams, rngs = augment(imgs, cams, rngs, augmentation, rng)
-        return to_model_inputs(imgs, cams, rngs)
+        return to_model_inputs(imgs, cams, rngs, device=device)

@@ -81,6 +81,7 @@ class Trainer:
         self.scheduler = torch.optim.lr_scheduler.StepLR(self.optimizer, step_size=opt.step_epochs, gamma=opt.gamma)
         self._descriptors: np.ndarray | None = None
         self._augment_rng = np.random.default_rng([self.config.seed, 2])  # training inputs only
+        self._deadline: float | None = None  # perf_counter() past which no step begins (the time budget)
         if len(self.data.split.train) == 0 or len(self.data.split.val) == 0:
             raise InvalidValueError(f"the split has {self.data.split.summary()}; training needs train and val queries "
                                     f"(record drives that revisit places, or change the split fractions)")
@@ -124,7 +125,7 @@ class Trainer:
     def describe(self, samples: np.ndarray, desc: str = "describe") -> np.ndarray:
         """N x 256 descriptors (NaN rows for samples not listed), model in eval mode."""
         return describe_samples(self.model, self.data, samples, batch=self.config.eval_batch, device=self.device,
-                                progress=self.progress, desc=desc)
+                                amp=self.config.amp, progress=self.progress, desc=desc)
 
     def epoch_queries(self, epoch: int) -> np.ndarray:
         """The training queries of ``epoch`` (all, or a seeded random subset of ``queries_per_epoch``)."""
@@ -156,17 +157,23 @@ class Trainer:
         losses: list[float] = []
         bar = progress_bar(len(triplets), desc=f"epoch {self.epoch}", unit="q", enabled=self.progress, leave=False)
         step = cfg.optim.queries_per_batch
+        # Past the deadline (less the time the next refresh will take) no step begins: the epoch is cut short.
+        stop = None if self._deadline is None else self._deadline - float(self.history[-1].get("describe_s", 0))
+        trained = 0
         for lo in range(0, len(triplets), step):
+            if stop is not None and time.perf_counter() > stop:
+                break
             group = triplets[lo:lo + step]
             loss = self.step(group)
             losses.append(loss)
+            trained += len(group)
             bar.update(len(group))
             bar.set_postfix(loss=f"{loss:.4f}", refresh=False)
         bar.close()
         self.scheduler.step()
         stats = mined.stats
         return {"loss": float(np.mean(losses)) if losses else None, "train_s": round(time.perf_counter() - start, 1),
-                "tuples": stats.tuples,
+                "tuples": stats.tuples, "trained": trained, "cut_short": trained < len(triplets),
                 "no_negative": stats.no_negative, "no_positive": stats.no_positive,
                 "mean_negatives": round(stats.mean_negatives, 3)}
 
@@ -175,9 +182,12 @@ class Trainer:
         ids: list[int] = []
         for t in triplets:
             ids += [t.query, t.positive, *t.negatives]
-        images, ranges = self.data.inputs(ids, augmentation=self.config.augment, rng=self._augment_rng)
-        desc = self.model(images.to(self.device), ranges.to(self.device))
-        loss = batch_triplet_loss(desc, [len(t.negatives) for t in triplets], margin=self.config.mining.margin)
+        images, ranges = self.data.inputs(ids, augmentation=self.config.augment, rng=self._augment_rng,
+                                          device=self.device)
+        with autocast(self.device, self.config.amp):
+            desc = self.model(images, ranges)
+        loss = batch_triplet_loss(desc.float(), [len(t.negatives) for t in triplets],
+                                  margin=self.config.mining.margin)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()
@@ -189,13 +199,25 @@ class Trainer:
         if resume:
             self.resume()
         t0 = time.perf_counter()
+        budget = self.config.optim.time_budget_s
+        self._deadline = t0 + budget if budget else None
         recall = self._refresh()
         if not self.history:  # epoch 0: the initialisation
             self.history.append({"epoch": 0, "loss": None, "lr": self.optimizer.param_groups[0]["lr"],
                                  "seconds": round(time.perf_counter() - t0, 1), **recall})
             self.save("init.pth")
             self._report(self.history[-1])
+        first = self.epoch  # epochs before it come from a resumed run
         for _ in range(self.epoch, self.config.optim.epochs):
+            if self.epoch > first and self.history[-1].get("cut_short"):
+                self.echo(f"time budget: {budget:g} s reached during epoch {self.epoch} "
+                          f"({self.history[-1].get('trained')} queries trained); stopping")
+                break
+            spent = time.perf_counter() - t0
+            if budget and len(self.history) > 1 and spent + self.history[-1]["seconds"] > budget:
+                self.echo(f"time budget: {spent:.0f} s spent of {budget:g} s, and an epoch takes about "
+                          f"{self.history[-1]['seconds']:.0f} s; stopping after epoch {self.epoch}")
+                break
             self.epoch += 1
             start = time.perf_counter()
             lr = self.optimizer.param_groups[0]["lr"]
@@ -239,19 +261,27 @@ class Trainer:
 
 @torch.no_grad()
 def describe_samples(model: LCPR, data: TrainingData, samples: np.ndarray, *, batch: int = 16,
-                     device: torch.device | str = "cpu", progress: bool = True, desc: str = "describe") -> np.ndarray:
-    """len(data) x 256 descriptors of ``samples`` (NaN rows for the others), ``model`` in eval mode."""
+                     device: torch.device | str = "cpu", amp: str = "off", progress: bool = True,
+                     desc: str = "describe") -> np.ndarray:
+    """len(data) x 256 descriptors of ``samples`` (NaN rows for the others), ``model`` in eval mode
+    (under bfloat16 autocast with ``amp='bf16'``)."""
     model.eval()
     out = np.full((len(data), model.descriptor_dim), np.nan, np.float32)
     samples = np.unique(np.asarray(samples, np.int64))
     bar = progress_bar(len(samples), desc=desc, unit="sample", enabled=progress, leave=False)
     for lo in range(0, len(samples), batch):
         idx = samples[lo:lo + batch]
-        images, ranges = data.inputs(idx)
-        out[idx] = model(images.to(device), ranges.to(device)).float().cpu().numpy()
+        images, ranges = data.inputs(idx, device=device)
+        with autocast(torch.device(device), amp):
+            out[idx] = model(images, ranges).float().cpu().numpy()
         bar.update(len(idx))
     bar.close()
     return out
+
+
+def autocast(device: torch.device, amp: str) -> torch.autocast:
+    """bfloat16 autocast on ``device`` when ``amp`` is 'bf16'; a disabled one (float32) for 'off'."""
+    return torch.autocast(device_type=device.type, dtype=torch.bfloat16, enabled=amp == "bf16")
 
 
 def export_weights(source: str | os.PathLike[str], target: str | os.PathLike[str], *, half: bool = True) -> int:
