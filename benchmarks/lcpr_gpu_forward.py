@@ -12,15 +12,14 @@ and the medians; ``--device cpu`` runs it anywhere (the tests use a small networ
 from __future__ import annotations
 
 import argparse
-import contextlib
-import statistics
 import sys
-import time
 
 import torch
 
 from lcpr_core import LCPR, ModelConfig, build_model
 from lcpr_core.lcpr.runtime.choose import probe_inputs
+from lcpr_core.lcpr.training.train import autocast
+from lcpr_core.timing import median_seconds
 
 
 def device_name(device: torch.device) -> str:
@@ -28,22 +27,17 @@ def device_name(device: torch.device) -> str:
 
 
 def median_ms(model: LCPR, batch: int, *, device: torch.device, bf16: bool, repeats: int, warmup: int = 5) -> float:
-    """Median wall time of one forward pass of ``batch`` frames, in milliseconds."""
+    """Median wall time of one forward pass of ``batch`` frames, in milliseconds (each pass waits for the GPU)."""
     images, ranges = probe_inputs(model, batch=batch)
     images, ranges = images.to(device), ranges.to(device)
-    amp = torch.autocast(device_type=device.type, dtype=torch.bfloat16) if bf16 else contextlib.nullcontext()
-    times: list[float] = []
-    with torch.inference_mode(), amp:
-        for k in range(warmup + repeats):
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
-            start = time.perf_counter()
-            model(images, ranges)
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
-            if k >= warmup:
-                times.append(time.perf_counter() - start)
-    return 1000 * statistics.median(times)
+
+    def forward() -> None:
+        model(images, ranges)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+
+    with torch.inference_mode(), autocast(device, "bf16" if bf16 else "off"):
+        return 1000 * median_seconds(forward, repeats=repeats, warmup=warmup)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -81,15 +81,7 @@ done
 for pid in "${pids[@]}"; do wait "$pid" || echo "an evaluation failed (see $OUT/eval_*.log)"; done
 
 stamp "results"
-$PY - "$OUT" <<'PY'
-import glob, json, os, sys
-out = sys.argv[1]
-for path in sorted(glob.glob(os.path.join(out, "eval_*", "report.json"))):
-    methods = {m["name"]: m.get("online") or {} for m in json.load(open(path))["methods"]}
-    cells = [f"{name}: R@1 {m.get('recall_at', {}).get('1', float('nan')):.3f} max F1 {m.get('max_f1') or 0:.3f} "
-             f"thr {m.get('max_f1_threshold')}" for name, m in methods.items()]
-    print(os.path.basename(os.path.dirname(path)), " | ".join(cells))
-PY
+$PY benchmarks/eval_table.py "$OUT"
 if [ -n "${RETURN_DIR:-}" ]; then
   mkdir -p "$RETURN_DIR"
   $PY -m lcpr_core.lcpr.training.cli --export "$RUN/turned.pth" "$OUT/lcpr_released_gpu.pth"

@@ -28,16 +28,4 @@ for split in val test; do
         --out "$OUT/eval_$name"
   done
 done
-$PY - "$OUT" <<'PY'
-import glob, json, os, sys
-out = sys.argv[1]
-for path in sorted(glob.glob(os.path.join(out, "eval_*", "report.json"))):
-    r = json.load(open(path))
-    rows = {m["name"]: m for m in r["methods"]}
-    cells = []
-    for name, m in rows.items():
-        on = m.get("online") or {}
-        cells.append(f"{name}: R@1 {on.get('recall_at', {}).get('1', float('nan')):.2f} maxF1 {on.get('max_f1') or 0:.3f}"
-                     f" thr {on.get('max_f1_threshold')}")
-    print(os.path.basename(os.path.dirname(path)), " | ".join(cells))
-PY
+$PY benchmarks/eval_table.py "$OUT"

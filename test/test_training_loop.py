@@ -144,3 +144,23 @@ def test_the_gpu_forward_benchmark_prints_medians_for_both_precisions_and_batche
     assert "width 0.25, 6 x 64x192 images" in out
     for line in ("fp32: one pass", "bf16: one pass"):
         assert line in out and "turn-averaged (six turns, batch 6)" in out
+
+
+def test_the_evaluation_table_prints_one_line_per_report_in_name_order(tmp_path, capsys):
+    import json
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from eval_table import main as table_main
+
+    for name, r1 in (("eval_b", 0.5), ("eval_a", 0.25)):
+        (tmp_path / name).mkdir()
+        methods = [{"name": "LCPR", "online": {"recall_at": {"1": r1}, "max_f1": 0.8, "max_f1_threshold": 0.7}},
+                   {"name": "Scan Context", "online": None}]
+        (tmp_path / name / "report.json").write_text(json.dumps({"methods": methods}))
+    assert table_main([str(tmp_path)]) == 0
+    assert capsys.readouterr().out.splitlines() == [
+        "eval_a LCPR: R@1 0.250 max F1 0.800 thr 0.7 | Scan Context: R@1 nan max F1 0.000 thr None",
+        "eval_b LCPR: R@1 0.500 max F1 0.800 thr 0.7 | Scan Context: R@1 nan max F1 0.000 thr None",
+    ]

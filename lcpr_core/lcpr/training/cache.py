@@ -131,9 +131,7 @@ def build_cache(
     preset = dataclasses.replace(lidar_preset(inputs.lidar), height=inputs.range_size[0],
                                  width=inputs.range_size[1])
     start = time.perf_counter()
-    tmp = root.with_name(root.name + ".partial")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
+    tmp = _partial_folder(root)
     streams = [read_frames(bag, topics=topics, decode_compressed=False) for bag in bags]
     capacity = sum(len(s) for s in streams)  # frames without a pose are skipped: rows past the count stay unused
     (h, w), (rh, rw), c = inputs.image_size, inputs.range_size, inputs.num_cameras
@@ -176,6 +174,19 @@ def build_cache(
                          f"training needs odometry (ground-truth poses)")
     meta |= {"samples": count, "samples_per_bag": per_bag, "frames_read": frames, "without_pose": without_pose,
              "build_seconds": round(time.perf_counter() - start, 1)}
+    return _publish(tmp, root, meta)
+
+
+def _partial_folder(root: Path) -> Path:
+    """An empty folder beside ``root`` to build into (a leftover of an interrupted build is removed)."""
+    tmp = root.with_name(root.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    return tmp
+
+
+def _publish(tmp: Path, root: Path, meta: dict[str, Any]) -> SampleCache:
+    """Write ``meta`` into the finished ``tmp`` folder, put it in place of ``root`` and open it."""
     (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
     shutil.rmtree(root, ignore_errors=True)
     os.replace(tmp, root)
@@ -188,9 +199,7 @@ def _build_in_parts(bags: Sequence[str | os.PathLike[str]], root: Path, meta: di
     from concurrent.futures import ProcessPoolExecutor
 
     start = time.perf_counter()
-    tmp = root.with_name(root.name + ".partial")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
+    tmp = _partial_folder(root)
     folders = [tmp / f"bag{k}" for k in range(len(bags))]
     with ProcessPoolExecutor(max_workers=min(workers, len(bags))) as pool:
         jobs = [pool.submit(build_cache, [bag], part, inputs=inputs, progress=False)
@@ -221,10 +230,7 @@ def _build_in_parts(bags: Sequence[str | os.PathLike[str]], root: Path, meta: di
              "frames_read": sum(m["frames_read"] for m in part_meta),
              "without_pose": sum(m["without_pose"] for m in part_meta),
              "build_seconds": round(time.perf_counter() - start, 1)}
-    (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
-    shutil.rmtree(root, ignore_errors=True)
-    os.replace(tmp, root)
-    return open_cache(root)
+    return _publish(tmp, root, meta)
 
 
 def _camera_slots(cameras: Sequence[Any], inputs: InputConfig) -> tuple[np.ndarray, np.ndarray]:
