@@ -124,12 +124,14 @@ def main() -> None:
     _print(points, chosen, final, lcpr, threshold, cpu)
 
 
-def final_evaluation(py: str, corpus: Path, weights: Path, out: Path) -> tuple[dict[str, dict], str, float | None]:
+def final_evaluation(py: str, corpus: Path, weights: Path, out: Path, *,
+                     test: bool = True) -> tuple[dict[str, dict], str, float | None]:
     """``lcpr_eval --no-verify`` of the chosen weights beside Scan Context on the validation cities and, only
-    then, the test cities (into ``OUT/final_CITY``): per city and method the online figures, the LCPR method's
-    name and its max-F1 threshold on :data:`THRESHOLD_CITY` (the operating threshold)."""
+    then (unless not ``test``), the test cities (into ``OUT/final_CITY``): per city and method the online
+    figures, the LCPR method's name and its max-F1 threshold on :data:`THRESHOLD_CITY` (the operating
+    threshold)."""
     final: dict[str, dict] = {}
-    for name in (*VALIDATION, *TEST):  # the test cities only now, after every choice
+    for name in (*VALIDATION, *(TEST if test else ())):  # the test cities only now, after every choice
         folder = out / f"final_{name}"
         run([py, "-m", "lcpr_ros.evaluate", str(corpus / f"{name}.bag"), "--weights", str(weights),
              "--threads", "2", "--quiet", "--no-verify", "--out", str(folder)])

@@ -104,6 +104,9 @@ def main() -> None:
     p.add_argument("--corpus", type=Path, default=Path("out/corpus"))
     p.add_argument("--weights", type=Path, default=Path("weights/lcpr_synth_narrow.pth"))
     p.add_argument("--out", type=Path, default=Path("out/turn_average"))
+    p.add_argument("--validation-only", action="store_true",
+                   help="evaluate the written weights on the validation cities only (a caller decides on them "
+                        "before any test city is read)")
     args = p.parse_args()
     missing = [n for n in (*VALIDATION, *TEST) if not (args.corpus / f"{n}.bag").is_dir()]
     if missing:
@@ -129,7 +132,8 @@ def main() -> None:
     target = args.out / "lcpr_synth_narrow.pth"
     write_turn_average(args.weights, target, on=True)
     gates = {name: {label: gate_counts(desc[label], gt) for label in CHOICES} for name, (desc, gt) in cities.items()}
-    final, lcpr, threshold = final_evaluation(sys.executable, args.corpus, target, args.out)
+    final, lcpr, threshold = final_evaluation(sys.executable, args.corpus, target, args.out,
+                                              test=not args.validation_only)
     for name in VALIDATION:  # the product's path gives what the rule scored
         got, want = final[name][lcpr], scores["turn average"]["cities"][name]
         if abs(got["recall@1"] - want["recall@1"]) > 1e-6 or abs(got["max_f1"] - want["max_f1"]) > 1e-6:

@@ -127,6 +127,9 @@ def main() -> None:
     p.add_argument("--cache", type=Path, default=Path("out/config_search/cache_64x192_16x288"),
                    help="sample cache of the training cities (built if missing)")
     p.add_argument("--out", type=Path, default=Path("out/whitening"))
+    p.add_argument("--validation-only", action="store_true",
+                   help="evaluate the written weights on the validation cities only (a caller decides on them "
+                        "before any test city is read)")
     args = p.parse_args()
     py = sys.executable
     train_bags = sorted(str(b) for b in args.corpus.glob("train_*.bag"))
@@ -169,7 +172,7 @@ def main() -> None:
     copy_with(args.weights, target, {WHITENING: fit.to_entry(), TURN_AVERAGE: False})  # whitening alone
     gates = {name: {"none": gate_counts(desc, gt), chosen: gate_counts(fit.apply(desc), gt)}
              for name, (desc, gt) in cities.items()}
-    final, lcpr, threshold = final_evaluation(py, args.corpus, target, args.out)
+    final, lcpr, threshold = final_evaluation(py, args.corpus, target, args.out, test=not args.validation_only)
     cpu = cpu_model()
     text = json.dumps({"cpu": cpu, "variants": variants, "chosen": chosen, "weights": str(target),
                        "max_distance": threshold, "gates": gates, "final": final}, indent=1)

@@ -6,6 +6,7 @@
     lcpr_train BAG ... --whiten DIR/best.pth DIR/whitened.pth        # descriptor whitening fitted on BAGs
     lcpr_train --turn-average on DIR/whitened.pth DIR/turned.pth     # descriptors averaged over the 6 turns
     lcpr_train BAG ... --out DIR --preset released --device cuda --amp bf16 --time-budget 3600   # a GPU
+    lcpr_train BAG ... --out DIR --init weights/lcpr_synth_narrow.pth --lr 3e-5   # fine-tune on your drives
 
 Frames are preprocessed once into DIR/cache (memory-mapped uint8 images, float16 range
 images); the split, mining and loss follow the paper (positives <= 9 m, negatives >= 18 m,
@@ -38,6 +39,7 @@ from .config import (
     OptimConfig,
     SplitConfig,
     TrainConfig,
+    checkpoint_inputs,
     input_preset,
 )
 from .dataset import TrainingData
@@ -69,9 +71,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write CHECKPOINT to TARGET asking (on) or not (off) for descriptors averaged over the six "
                         "camera-slot turns (six network passes per frame; lcpr_core.lcpr.turn_average), then exit")
     g = p.add_argument_group("model and inputs")
-    g.add_argument("--preset", choices=list(PRESETS), default="cpu",
+    g.add_argument("--preset", choices=list(PRESETS), default=None,
                    help="cpu: 64x192 images, 16x288 ranges, width 0.25; cpu_large: 128x352, 32x528, 0.5; "
-                        "released: 256x704, 32x1056, 1.0 (GPU) (default cpu)")
+                        "released: 256x704, 32x1056, 1.0 (GPU) (default cpu, or with --init the checkpoint's)")
     g.add_argument("--width", type=float, default=None, help="channel multiplier (overrides the preset)")
     g.add_argument("--image-size", type=int, nargs=2, metavar=("H", "W"), default=None,
                    help="camera input size, multiples of 32 (overrides the preset)")
@@ -80,6 +82,11 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--lidar", choices=sorted(LIDAR_PRESETS), default=None,
                    help="range-image geometry preset (default nuscenes_lidar_top)")
     g.add_argument("--imagenet", default="", help="torchvision resnet18 state dict (local file; width 1.0 only)")
+    g.add_argument("--init", default="", metavar="CHECKPOINT",
+                   help="fine-tune: start from this checkpoint's network (a released checkpoint, a bundled or "
+                        "exported file, a run's best.pth) with a fresh optimizer and epoch count; its sizes and "
+                        "width are the defaults; whitening and turn averaging in it are not carried over (fit them "
+                        "again on the result)")
     g.add_argument("--seed", type=int, default=0, help="initialisation and sampling seed (default 0)")
     g = p.add_argument_group("split and mining (paper defaults)")
     g.add_argument("--positive-radius", type=float, default=9.0, help="m (default 9)")
@@ -125,7 +132,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def config_from_args(args: argparse.Namespace) -> TrainConfig:
-    inputs = input_preset(args.preset)
+    if args.preset is not None:
+        inputs = input_preset(args.preset)
+    elif args.init:  # the checkpoint's own inputs; a file without them is the released configuration
+        inputs = checkpoint_inputs(args.init, default=PRESETS["released"])
+    else:
+        inputs = PRESETS["cpu"]
     overrides = {"width": args.width, "lidar": args.lidar,
                  "image_size": tuple(args.image_size) if args.image_size else None,
                  "range_size": tuple(args.range_size) if args.range_size else None}
@@ -138,7 +150,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         optim=OptimConfig(epochs=args.epochs, lr=args.lr, gamma=args.gamma, step_epochs=args.step_epochs,
                           queries_per_batch=args.batch, queries_per_epoch=args.queries_per_epoch,
                           time_budget_s=args.time_budget),
-        seed=args.seed, imagenet=args.imagenet, threads=args.threads, eval_batch=args.eval_batch,
+        seed=args.seed, imagenet=args.imagenet, init=args.init, threads=args.threads, eval_batch=args.eval_batch,
         device=args.device, amp=args.amp,
         augment=AugmentConfig(yaw=args.augment_yaw, lighting=args.augment_lighting,
                               brightness=tuple(args.brightness), camera_drop=args.augment_camera_drop,

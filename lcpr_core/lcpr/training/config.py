@@ -1,10 +1,12 @@
 """Dataclass configurations of LCPR training: inputs, split, mining, optimisation, augmentation."""
 from __future__ import annotations
 
+import os
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-from ...errors import InvalidValueError
+from ...errors import CheckpointError, InvalidValueError
+from ..describer import checkpoint_config
 from ..preprocess import lidar_preset
 from .augment import AugmentConfig
 
@@ -54,6 +56,23 @@ def input_preset(name: str) -> InputConfig:
         return PRESETS[name]
     except KeyError as err:
         raise InvalidValueError(f"unknown input preset {name!r}; accepted: {', '.join(PRESETS)}") from err
+
+
+def checkpoint_inputs(checkpoint: str | os.PathLike[str], *, default: InputConfig | None = None) -> InputConfig:
+    """The inputs a checkpoint written by lcpr_train was trained on (its 'config' entry).
+
+    A file without the entry (a released checkpoint, a plain state dict) gives ``default``, or is refused
+    when there is none.
+    """
+    entry = checkpoint_config(checkpoint)
+    if not entry:
+        if default is not None:
+            return default
+        raise CheckpointError(f"{str(checkpoint)!r} has no 'config' entry (sizes and width); expected a checkpoint "
+                              "written by lcpr_train")
+    return InputConfig(num_cameras=int(entry.get("num_cameras", 6)), image_size=tuple(entry["image_size"]),
+                       range_size=tuple(entry["range_size"]), lidar=str(entry.get("lidar", "nuscenes_lidar_top")),
+                       width=float(entry["width"]))
 
 
 @dataclass(frozen=True)
@@ -141,6 +160,7 @@ class TrainConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
     seed: int = 0  # network initialisation and sampling seed
     imagenet: str = ""  # torchvision resnet18 state dict for the ResNet blocks (width 1.0 only)
+    init: str = ""  # a trained checkpoint whose network is the starting point (fine-tuning); fresh optimizer
     threads: int = 2  # torch intra-op threads
     eval_batch: int = 16  # samples per forward when caching descriptors
     device: str = "cpu"  # torch device, e.g. cuda:0 for the released preset
@@ -157,6 +177,9 @@ class TrainConfig:
         if self.imagenet and self.inputs.width != 1.0:
             raise InvalidValueError(f"imagenet={self.imagenet!r} needs width 1.0 (torchvision resnet18 shapes); "
                                     f"got width={self.inputs.width}")
+        if self.imagenet and self.init:
+            raise InvalidValueError(f"imagenet={self.imagenet!r} and init={self.init!r}: give one starting point, "
+                                    "not both")
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

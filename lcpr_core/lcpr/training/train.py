@@ -30,7 +30,7 @@ from msg_tools.progress import progress_bar
 
 from ...atomic import atomic_path, save_torch
 from ...errors import CheckpointError, InvalidValueError
-from ..checkpoint import check_state_dict, init_from_imagenet, read_released, save_checkpoint
+from ..checkpoint import check_state_dict, init_from_imagenet, load_weights, read_released, save_checkpoint
 from ..models import LCPR
 from ..turn_average import ENTRY as TURN_AVERAGE
 from ..whitening import ENTRY as WHITENING
@@ -47,7 +47,8 @@ CHECKPOINTS = ("init.pth", "last.pth", "best.pth")
 
 
 def make_model(config: TrainConfig) -> LCPR:
-    """The network to train, seeded (and its ResNet blocks from ImageNet when a file is given)."""
+    """The network to train: seeded, then its ResNet blocks from ImageNet or the whole network from a trained
+    checkpoint (``init``, e.g. a float16 export) when a file is given."""
     inputs = config.inputs
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(config.seed)
@@ -55,6 +56,8 @@ def make_model(config: TrainConfig) -> LCPR:
                      width=inputs.width)
     if config.imagenet:
         init_from_imagenet(model, config.imagenet)
+    if config.init:
+        load_weights(model, config.init)  # copied into the float32 parameters
     return model
 
 

@@ -7,24 +7,12 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from ...errors import CheckpointError
-from ..describer import ModelConfig, build_model, checkpoint_config
+from ..describer import ModelConfig, build_model
 from ..whitening import DEFAULT_DIMS, DEFAULT_POWER, Whitening, fit_whitening, write_whitened
 from .cache import build_cache
-from .config import InputConfig
+from .config import checkpoint_inputs
 from .dataset import TrainingData
 from .train import describe_samples
-
-
-def checkpoint_inputs(checkpoint: str | os.PathLike[str]) -> InputConfig:
-    """The inputs a checkpoint written by lcpr_train was trained on (its 'config' entry)."""
-    entry = checkpoint_config(checkpoint)
-    if not entry:
-        raise CheckpointError(f"{str(checkpoint)!r} has no 'config' entry (sizes and width); whitening is fitted "
-                              "on checkpoints written by lcpr_train")
-    return InputConfig(num_cameras=int(entry.get("num_cameras", 6)), image_size=tuple(entry["image_size"]),
-                       range_size=tuple(entry["range_size"]), lidar=str(entry.get("lidar", "nuscenes_lidar_top")),
-                       width=float(entry["width"]))
 
 
 def whiten_checkpoint(

@@ -1,0 +1,240 @@
+"""Fine-tuning the bundled LCPR weights with more KITTI-00-route cities (issue #14), adopted only by a validation rule.
+
+    python benchmarks/lcpr_finetune.py [--corpus out/corpus] [--weights weights/lcpr_synth_narrow.pth]
+                                       [--out out/finetune] [--seeds 47 49 51 53] [--stages 10 20]
+
+Why: the bundled weights miss max F1 >= 0.80 on the KITTI-00 route only, and 2 of their 12 training cities
+drive that route. The plan and the rules below were written into this script before it first ran:
+
+1. Render KITTI-00-route training cities with ``--seeds`` (300 keyframes each; every second one with twice
+   the night share and camera drops, as ``lcpr_corpus.sh`` does for its pair) into ``OUT/corpus``, beside
+   links to every bag of ``--corpus``: 16 training cities, 4 of them on the KITTI-00 route.
+2. ``lcpr_train --init WEIGHTS`` on the 16 cities with the bundled recipe's options and its learning-rate
+   schedule where it stood at epoch 60 (3e-4 x 0.8^10, x0.8 every 6 epochs), to each of ``--stages``
+   epochs; each stage is exported in float32 and scored on the two validation cities as the bundle scores
+   its stages (online protocol, retrieval only, the network's own descriptors).
+3. Stage rule (the bundle's): the best mean validation Recall@1, mean max F1 breaking ties, among the
+   stages and the starting network (stage 0). If stage 0 wins, nothing is adopted.
+   ``--stage-rule max_f1`` takes the best mean validation max F1 instead (Recall@1 breaking ties): the
+   issue's target metric. It was added after the first run had read the stage table (the Recall@1 rule
+   chose stage 0; the KITTI-00 validation max F1 rose at stage 20), so it is a second choice on the
+   validation cities, reported as such; no test city had been read.
+4. ``lcpr_whitening.py`` and then ``lcpr_turn_average.py`` on the chosen stage and the 16 cities, with
+   their own rules, on the validation cities only.
+5. Adoption rule: the result replaces the bundled weights only if its mean validation max F1 is at least
+   1 point above the bundled weights' and its mean validation Recall@1 at most 1 point below (both from
+   ``lcpr_eval --no-verify``, the bundled weights evaluated here the same way).
+6. Only after the decision is written to ``finetune_RULE.json``: the test cities, for the result, beside
+   Scan Context. Writes ``finetune_RULE.png`` (validation figures against epochs) and prints the README's
+   tables.
+
+Stages, whitening and evaluations already made are reused on a second run.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+from lcpr_bundle import TEST, final_evaluation, print_final  # noqa: E402
+from lcpr_config_search import (  # noqa: E402
+    VALIDATION,
+    Config,
+    evaluate,
+    export,
+    finish_figure,
+    run,
+    train_command,
+    training_seconds,
+)
+
+from lcpr_core.atomic import write_atomic  # noqa: E402
+from lcpr_core.lcpr.checkpoint import copy_with  # noqa: E402
+from lcpr_core.lcpr.turn_average import ENTRY as TURN_AVERAGE  # noqa: E402
+from lcpr_core.lcpr.whitening import ENTRY as WHITENING  # noqa: E402
+from lcpr_core.timing import cpu_model  # noqa: E402
+from msg_tools.progress import progress_bar  # noqa: E402
+
+#: The bundled recipe's schedule as it stood after its 60 epochs (Adam 3e-4, x0.8 every 6 epochs).
+FINETUNE = Config("cpu preset from the bundled network (lr 3e-4 x 0.8^10)", (64, 192), (16, 288), 0.25,
+                  3e-4 * 0.8**10, 6, 0.8)
+FRAMES = 300
+MIN_F1_GAIN = 0.01  # mean validation max F1 the result must add to the bundled weights' to replace them
+MAX_RECALL_DROP = 0.01  # mean validation Recall@1 it may lose
+#: How a stage is chosen on the validation cities (step 3 of the docstring): the sort key of a point.
+STAGE_RULES: dict[str, Callable[[dict], tuple[float, float]]] = {
+    "recall": lambda pt: (pt["mean_recall@1"], pt["mean_max_f1"]),
+    "max_f1": lambda pt: (pt["mean_max_f1"], pt["mean_recall@1"]),
+}
+
+
+def build_corpus(corpus: Path, out: Path, seeds: list[int]) -> list[str]:
+    """``out`` with links to every bag of ``corpus`` and the extra KITTI-00-route cities rendered; the training
+    bags, sorted."""
+    out.mkdir(parents=True, exist_ok=True)
+    for bag in sorted(corpus.glob("*.bag")):
+        link = out / bag.name
+        if not link.exists():
+            link.symlink_to(bag.resolve(), target_is_directory=True)
+    for i, seed in enumerate(seeds):
+        bag = out / f"train_k00_s{seed}.bag"
+        if (corpus / bag.name).exists():
+            raise SystemExit(f"--seeds: {seed} is already a city of {corpus}")
+        if bag.exists():
+            continue
+        extra = ["--night-fraction", "0.5", "--camera-drop", "0.05"] if i % 2 else []
+        run([sys.executable, "-m", "citysim.cli", "--route", "kitti00", "--seed", str(seed), "--frames", str(FRAMES),
+             "--image-size", "400x225", "--workers", "2", "--no-progress", "--out", str(bag), *extra])
+    return sorted(str(b) for b in out.glob("train_*.bag"))
+
+
+def mean_point(cities: dict[str, dict]) -> dict:
+    return {"cities": cities, "mean_recall@1": sum(c["recall@1"] for c in cities.values()) / len(cities),
+            "mean_max_f1": sum(c["max_f1"] for c in cities.values()) / len(cities)}
+
+
+def lcpr_figures(final: dict[str, dict]) -> dict[str, dict]:
+    """Per city the LCPR method's online Recall@1 and max F1 of a :func:`final_evaluation`."""
+    return {city: next(iter(methods.values())) for city, methods in final.items()}
+
+
+def adopt(result: dict, bundled: dict) -> bool:
+    """The adoption rule of the docstring."""
+    return (result["mean_max_f1"] >= bundled["mean_max_f1"] + MIN_F1_GAIN
+            and result["mean_recall@1"] >= bundled["mean_recall@1"] - MAX_RECALL_DROP)
+
+
+def postprocess(stage: Path, corpus: Path, cache: Path, out: Path) -> Path:
+    """Whitening, then turn averaging, each by its own script's rule on the validation cities; the last file
+    written (``stage`` itself when neither rule adopts anything)."""
+    weights = stage
+    for script, folder, extra in (("lcpr_whitening.py", out / "whitening", ["--cache", str(cache)]),
+                                  ("lcpr_turn_average.py", out / "turn_average", [])):
+        target = folder / "lcpr_synth_narrow.pth"
+        if not (target.is_file() and target.stat().st_mtime > weights.stat().st_mtime):
+            cmd = [sys.executable, str(Path(__file__).with_name(script)), "--corpus", str(corpus), "--weights",
+                   str(weights), "--out", str(folder), "--validation-only", *extra]
+            proc = subprocess.run(cmd, capture_output=True, text=True)
+            if proc.returncode != 0:
+                raise SystemExit(f"failed ({proc.returncode}): {' '.join(cmd)}\n{proc.stderr[-3000:]}")
+            print(proc.stdout.strip(), flush=True)
+        if target.is_file() and target.stat().st_mtime > weights.stat().st_mtime:
+            weights = target
+    return weights
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--corpus", type=Path, default=Path("out/corpus"))
+    p.add_argument("--weights", type=Path, default=Path("weights/lcpr_synth_narrow.pth"))
+    p.add_argument("--out", type=Path, default=Path("out/finetune"))
+    p.add_argument("--seeds", type=int, nargs="+", default=[47, 49, 51, 53], help="extra KITTI-00-route cities")
+    p.add_argument("--stages", type=int, nargs="+", default=[10, 20], help="epochs of fine-tuning, rising")
+    p.add_argument("--queries-per-epoch", type=int, default=256)
+    p.add_argument("--stage-rule", choices=tuple(STAGE_RULES), default="recall",
+                   help="recall: the bundle's rule (default); max_f1: the issue's target metric (step 3)")
+    args = p.parse_args()
+    if sorted(set(args.stages)) != args.stages or args.stages[0] < 1:
+        raise SystemExit(f"--stages {args.stages}: must rise and start at 1 or more")
+    missing = [n for n in (*VALIDATION, *TEST) if not (args.corpus / f"{n}.bag").is_dir()]
+    if missing:
+        raise SystemExit(f"{args.corpus}: missing {missing}; run benchmarks/lcpr_corpus.sh first")
+    py = sys.executable
+    corpus = args.out / "corpus"
+    train_bags = build_corpus(args.corpus, corpus, args.seeds)
+    run_dir, cache = args.out / "run", args.out / "run" / "cache"
+
+    stage0 = args.out / "stage_e0.pth"  # the bundled network alone, scored as the stages are
+    if not stage0.is_file():
+        copy_with(args.weights, stage0, {WHITENING: None, TURN_AVERAGE: False})
+    points = [{"epochs": 0, "train_s": 0.0, **mean_point(
+        {n: evaluate(py, corpus / f"{n}.bag", stage0, args.out / f"eval_e0_{n}", reuse=True) for n in VALIDATION})}]
+    bar = progress_bar(len(args.stages), desc="fine-tune", unit="stage")
+    for epochs in args.stages:
+        bar.update(1)
+        weights = args.out / f"stage_e{epochs}.pth"
+        history = run_dir / "history.json"
+        trained = json.loads(history.read_text())[-1]["epoch"] if history.is_file() else 0
+        if trained < epochs:
+            run(train_command(py, FINETUNE, train_bags, run_dir, cache, epochs,
+                              queries_per_epoch=args.queries_per_epoch, resume=trained > 0,
+                              extra=["--init", str(args.weights)]))
+            trained = epochs
+        if not weights.is_file():
+            if trained != epochs:
+                raise SystemExit(f"{run_dir} is at epoch {trained}, past stage {epochs}, and {weights} is missing")
+            export(py, run_dir / "last.pth", weights, fp32=True)
+        cities = {n: evaluate(py, corpus / f"{n}.bag", weights, args.out / f"eval_e{epochs}_{n}", reuse=True)
+                  for n in VALIDATION}
+        points.append({"epochs": epochs, "train_s": round(training_seconds(run_dir, epochs), 1),
+                       **mean_point(cities)})
+        bar.write(f"stage {epochs}: validation R@1 " + ", ".join(f"{k} {v['recall@1']:.2f}" for k, v in cities.items()))
+    bar.close()
+
+    chosen = max(points, key=STAGE_RULES[args.stage_rule])
+    cpu = cpu_model()
+    decision: dict = {"cpu": cpu, "seeds": args.seeds, "training_bags": len(train_bags), "points": points,
+                      "stage_rule": args.stage_rule, "chosen_epochs": chosen["epochs"]}
+    result_weights = None
+    stage_out = args.out / f"e{chosen['epochs']}"
+    if chosen["epochs"] > 0:
+        result_weights = postprocess(args.out / f"stage_e{chosen['epochs']}.pth", corpus, cache, stage_out)
+        bundled_final, _, _ = final_evaluation(py, corpus, args.weights, args.out / "bundled", test=False)
+        result_final, _, _ = final_evaluation(py, corpus, result_weights, stage_out / "result", test=False)
+        bundled, result = mean_point(lcpr_figures(bundled_final)), mean_point(lcpr_figures(result_final))
+        decision |= {"weights": str(result_weights), "bundled_validation": bundled, "result_validation": result,
+                     "adopted": adopt(result, bundled)}
+    else:
+        decision["adopted"] = False
+    record = args.out / f"finetune_{args.stage_rule}.json"
+    write_atomic(record, lambda tmp: tmp.write_text(json.dumps(decision, indent=1)))
+    _plot(points, chosen["epochs"], args.out / f"finetune_{args.stage_rule}.png", cpu)
+    _print(decision)
+    if result_weights is not None:  # the test cities only now, after the decision is on disk
+        final, lcpr, _ = final_evaluation(py, corpus, result_weights, stage_out / "result")
+        decision["final"] = final
+        write_atomic(record, lambda tmp: tmp.write_text(json.dumps(decision, indent=1)))
+        print_final(final, lcpr)
+
+
+def _plot(points: list[dict], chosen: int, path: Path, cpu: str) -> None:
+    fig, ax = plt.subplots(figsize=(7.5, 4.5))
+    epochs = [pt["epochs"] for pt in points]
+    for i, name in enumerate(VALIDATION):
+        ax.plot(epochs, [pt["cities"][name]["recall@1"] for pt in points], "o-", color=f"C{i}",
+                label=f"{name} Recall@1")
+        ax.plot(epochs, [pt["cities"][name]["max_f1"] for pt in points], "s--", color=f"C{i}", alpha=0.6,
+                label=f"{name} max F1")
+    ax.plot(epochs, [pt["mean_recall@1"] for pt in points], "k^-", label="mean Recall@1")
+    ax.axvline(chosen, color="green", lw=1.0, label=f"chosen: {chosen} epochs")
+    finish_figure(fig, ax, path, xlabel=f"epochs of fine-tuning from the bundled network ({cpu}, 2 threads)",
+                  ylabel="validation cities, online protocol (network only)",
+                  title="LCPR fine-tuned with 4 KITTI-00-route cities: validation against epochs")
+
+
+def _print(decision: dict) -> None:
+    print(f"CPU: {decision['cpu']}, 2 threads; {decision['training_bags']} training cities")
+    print("| fine-tuning epochs | training min | " + " | ".join(f"{v} R@1 / max F1" for v in VALIDATION)
+          + " | mean R@1 |")
+    print("|---|---|" + "---|" * len(VALIDATION) + "---|")
+    for pt in decision["points"]:
+        cells = " | ".join(f"{c['recall@1']:.2f} / {c['max_f1']:.3f}" for c in pt["cities"].values())
+        print(f"| {pt['epochs']} | {pt['train_s'] / 60:.1f} | {cells} | {pt['mean_recall@1']:.3f} |")
+    print(f"chosen on validation: {decision['chosen_epochs']} epochs")
+    for key in ("bundled_validation", "result_validation"):
+        if key in decision:
+            v = decision[key]
+            cells = ", ".join(f"{k} {c['recall@1']:.3f} / {c['max_f1']:.3f}" for k, c in v["cities"].items())
+            print(f"{key}: {cells}; mean {v['mean_recall@1']:.3f} / {v['mean_max_f1']:.3f}")
+    print(f"adopted by the rule (max F1 +{MIN_F1_GAIN}, Recall@1 -{MAX_RECALL_DROP} at most): {decision['adopted']}")
+
+
+if __name__ == "__main__":
+    main()
