@@ -27,6 +27,11 @@ drive that route. The plan and the rules below were written into this script bef
 6. Only after the decision is written to ``finetune_RULE.json``: the test cities, for the result, beside
    Scan Context. Writes ``finetune_RULE.png`` (validation figures against epochs) and prints the README's
    tables.
+7. If adopted: the result exported in float16 (network float16, whitening float32, as the bundle ships
+   it) to ``OUT/lcpr_synth_narrow.pth``, the file to copy to ``weights/``, and evaluated the same way on
+   the validation and test cities; its max-F1 threshold on validation grid seed 3 is the operating
+   threshold (``lcpr_core.pretrained.BUNDLED_MAX_DISTANCE``). Nothing is chosen in this step: float16
+   is how the bundle is stored, and these are the shipped file's figures.
 
 Stages, whitening and evaluations already made are reused on a second run.
 """
@@ -43,7 +48,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
-from lcpr_bundle import TEST, final_evaluation, print_final  # noqa: E402
+from lcpr_bundle import TEST, THRESHOLD_CITY, final_evaluation, print_final  # noqa: E402
 from lcpr_config_search import (  # noqa: E402
     VALIDATION,
     Config,
@@ -186,8 +191,10 @@ def main() -> None:
     stage_out = args.out / f"e{chosen['epochs']}"
     if chosen["epochs"] > 0:
         result_weights = postprocess(args.out / f"stage_e{chosen['epochs']}.pth", corpus, cache, stage_out)
-        bundled_final, _, _ = final_evaluation(py, corpus, args.weights, args.out / "bundled", test=False)
-        result_final, _, _ = final_evaluation(py, corpus, result_weights, stage_out / "result", test=False)
+        bundled_final, _, _ = final_evaluation(py, corpus, args.weights, args.out / "bundled", test=False,
+                                               reuse=True)
+        result_final, _, _ = final_evaluation(py, corpus, result_weights, stage_out / "result", test=False,
+                                              reuse=True)
         bundled, result = mean_point(lcpr_figures(bundled_final)), mean_point(lcpr_figures(result_final))
         decision |= {"weights": str(result_weights), "bundled_validation": bundled, "result_validation": result,
                      "adopted": adopt(result, bundled)}
@@ -198,9 +205,20 @@ def main() -> None:
     _plot(points, chosen["epochs"], args.out / f"finetune_{args.stage_rule}.png", cpu)
     _print(decision)
     if result_weights is not None:  # the test cities only now, after the decision is on disk
-        final, lcpr, _ = final_evaluation(py, corpus, result_weights, stage_out / "result")
+        final, lcpr, _ = final_evaluation(py, corpus, result_weights, stage_out / "result", reuse=True)
         decision["final"] = final
         write_atomic(record, lambda tmp: tmp.write_text(json.dumps(decision, indent=1)))
+        print_final(final, lcpr)
+    if result_weights is not None and decision["adopted"]:  # step 7: the file to bundle, in float16
+        shipped = args.out / "lcpr_synth_narrow.pth"
+        if not (shipped.is_file() and shipped.stat().st_mtime > result_weights.stat().st_mtime):
+            export(py, result_weights, shipped, fp32=False)
+        final, lcpr, threshold = final_evaluation(py, corpus, shipped, args.out / "shipped", reuse=True)
+        decision["shipped"] = {"weights": str(shipped), "bytes": shipped.stat().st_size, "max_distance": threshold,
+                               "final": final}
+        write_atomic(record, lambda tmp: tmp.write_text(json.dumps(decision, indent=1)))
+        print(f"shipped in float16: {shipped} ({shipped.stat().st_size / 1e6:.2f} MB); max-F1 threshold on "
+              f"{THRESHOLD_CITY}: {threshold}")
         print_final(final, lcpr)
 
 

@@ -75,8 +75,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     weights.add_argument("--seeded", action="store_true", help="use the seeded random initialisation")
     p.add_argument("--max-distance", type=float, default=None,
                    help="match.max_distance for the node (default: the node's, 1.0: every candidate of the top 10 "
-                        f"is verified; with --no-verify and the bundled weights {BUNDLED_MAX_DISTANCE}, chosen on a "
-                        "validation city)")
+                        f"is verified; with --no-verify and the bundled weights {BUNDLED_MAX_DISTANCE:.2f}, chosen "
+                        "on a validation city)")
     p.add_argument("--no-verify", action="store_true",
                    help="publish the nearest descriptor without checking it against the LiDAR (the old behaviour)")
     p.add_argument("--drift-seed", type=int, default=0, help="seed of the odometry drift of the pose-graph proof")
@@ -254,7 +254,7 @@ def report(args, truth: Truth, out, detector: dict, inputs: dict, replay_s: floa
     print(f"  loops published:    {verified.loops} on ~/loop_closure ({mode}), {verified.correct} correct, "
           f"{wrong} wrong{valid}")
     print(f"  precision:          {_f(verified.precision)}   (retrieval alone, nearest descriptor under "
-          f"{BUNDLED_MAX_DISTANCE}: {_f(baseline.precision)})")
+          f"{BUNDLED_MAX_DISTANCE:.2f}: {_f(baseline.precision)})")
     print(f"  recall:             {_f(verified.recall)} ({verified.closed} of {n_true} revisiting keyframes closed; "
           f"retrieval alone: {_f(baseline.recall)})")
     if verified.trans_err_median is not None:
