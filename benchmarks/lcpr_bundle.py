@@ -36,6 +36,7 @@ from lcpr_config_search import (  # noqa: E402
     export,
     finish_figure,
     in_training_recall,
+    reusable_report,
     run,
     slug,
     train_command,
@@ -129,15 +130,16 @@ def final_evaluation(py: str, corpus: Path, weights: Path, out: Path, *, test: b
     """``lcpr_eval --no-verify`` of the chosen weights beside Scan Context on the validation cities and, only
     then (unless not ``test``), the test cities (into ``OUT/final_CITY``): per city and method the online
     figures, the LCPR method's name and its max-F1 threshold on :data:`THRESHOLD_CITY` (the operating
-    threshold). With ``reuse``, a report newer than the weights is read back instead of evaluating again."""
+    threshold). With ``reuse``, a report made with the weights (:func:`reusable_report`) is read back
+    instead of evaluating again."""
     final: dict[str, dict] = {}
     for name in (*VALIDATION, *(TEST if test else ())):  # the test cities only now, after every choice
         folder = out / f"final_{name}"
         report = folder / "report.json"
-        if not (reuse and report.is_file() and report.stat().st_mtime > weights.stat().st_mtime):
+        if not (reuse and reusable_report(report, weights)):
             run([py, "-m", "lcpr_ros.evaluate", str(corpus / f"{name}.bag"), "--weights", str(weights),
                  "--threads", "2", "--quiet", "--no-verify", "--out", str(folder)])
-        final[name] = online_methods(folder / "report.json")
+        final[name] = online_methods(report)
     lcpr = next(iter(final[THRESHOLD_CITY]))
     return final, lcpr, final[THRESHOLD_CITY][lcpr]["max_f1_threshold"]
 

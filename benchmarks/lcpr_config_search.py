@@ -118,11 +118,29 @@ def slug(config: Config) -> str:
     return "".join(c if c.isalnum() else "_" for c in config.name)[:48].strip("_")
 
 
+def made_after(path: Path, source: Path) -> bool:
+    """Whether ``path`` exists and was written after ``source``: the benchmarks' rule for reusing a result
+    (a report, an exported or post-processed weights file) instead of making it again."""
+    return path.is_file() and path.stat().st_mtime > source.stat().st_mtime
+
+
+def reusable_report(report: Path, weights: Path, *, key: tuple[str, ...] = ("settings", "model", "weights")) -> bool:
+    """Whether a JSON report can stand for running ``weights`` again: written after them and made with that
+    same file, whose path the report holds under ``key`` (an ``lcpr_eval`` report's by default); a report
+    another weights file left in the same folder is not."""
+    if not made_after(report, weights):
+        return False
+    made_with = json.loads(report.read_text())
+    for part in key:
+        made_with = made_with[part]
+    return Path(made_with).resolve() == weights.resolve()
+
+
 def evaluate(py: str, bag: Path, weights: Path, out: Path, *, reuse: bool = False) -> dict[str, float]:
     """Online Recall@1 and max F1 of ``weights`` on ``bag`` (retrieval only); with ``reuse``, a report in
-    ``out`` newer than the weights is read back instead of evaluating again."""
+    ``out`` made with them (:func:`reusable_report`) is read back instead of evaluating again."""
     report = out / "report.json"
-    if not (reuse and report.is_file() and report.stat().st_mtime > weights.stat().st_mtime):
+    if not (reuse and reusable_report(report, weights)):
         run([py, "-m", "lcpr_ros.evaluate", str(bag), "--weights", str(weights), "--threads", "2", "--quiet",
              "--no-verify", "--no-scan-context", "--out", str(out)])
     recall_at_1, max_f1 = online(report)

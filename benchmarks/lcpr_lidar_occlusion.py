@@ -27,7 +27,7 @@ import shutil
 import sys
 from pathlib import Path
 
-from lcpr_config_search import CPU, VALIDATION, evaluate, export, run, train_command
+from lcpr_config_search import CPU, VALIDATION, evaluate, export, reusable_report, run, train_command
 
 from lcpr_core.atomic import write_atomic
 from lcpr_core.lcpr.training.augment import LIDAR_QUARTERS
@@ -41,7 +41,7 @@ MAX_CLEAN_LOSS = 0.01
 def occlusion_scores(py: str, weights: Path, out: Path) -> dict[str, dict[str, float]]:
     """City -> occlusion condition -> Recall@1 (the robustness study on the validation cities)."""
     report = out / "robustness.json"
-    if not (report.is_file() and report.stat().st_mtime > weights.stat().st_mtime):
+    if not reusable_report(report, weights, key=("weights",)):
         run([py, str(Path(__file__).with_name("lcpr_robustness.py")), "--cities", *ROBUSTNESS_CITIES,
              "--studies", "occlusion", "--weights", str(weights), "--out", str(out)])
     return {city: studies["occlusion"] for city, studies in json.loads(report.read_text())["recall_at_1"].items()}

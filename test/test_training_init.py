@@ -108,3 +108,26 @@ def test_the_finetune_corpus_links_every_bag_and_refuses_a_seed_the_corpus_has(t
     assert (tmp_path / "out" / "val_grid_s3.bag").resolve() == (corpus / "val_grid_s3.bag").resolve()
     with pytest.raises(SystemExit, match="41 is already a city"):
         build_corpus(corpus, tmp_path / "out2", [41])
+
+
+def test_a_benchmark_reuses_a_report_only_when_it_was_made_after_and_with_the_same_weights(tmp_path):
+    import json
+    import os
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from lcpr_config_search import reusable_report
+
+    ours, other = tmp_path / "ours.pth", tmp_path / "other.pth"
+    for w in (ours, other):
+        w.write_bytes(b"w")
+        os.utime(w, (1_000, 1_000))
+    report = tmp_path / "report.json"
+    report.write_text(json.dumps({"settings": {"model": {"weights": str(ours)}}}))
+    os.utime(report, (2_000, 2_000))
+    assert reusable_report(report, ours)
+    assert not reusable_report(report, other)  # left in the folder by another weights file
+    os.utime(ours, (3_000, 3_000))
+    assert not reusable_report(report, ours)  # the weights changed since
+    assert not reusable_report(tmp_path / "missing.json", ours)
