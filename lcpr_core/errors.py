@@ -47,3 +47,7 @@ class VerificationError(LcprError, ValueError):
 
 class RuntimeSetupError(LcprError):
     """An inference path (exported graph, int8 model, runtime library) cannot be built or loaded."""
+
+
+class DeviceError(LcprError):
+    """The device failed while describing a frame (a GPU out of memory); the frame is skipped, nothing stored."""

@@ -619,6 +619,7 @@ class EvaluationReport:
     ground_truth: GroundTruth
     methods: list[MethodResult]
     wall_time_s: float = 0.0
+    setup_time_s: float = 0.0  # of wall_time_s: building the detector (loading, auto's measurement, graph capture)
     verified: VerifiedLoops | None = None  # LCPR + verification; None when verification was off
 
     def to_dict(self) -> dict[str, Any]:
@@ -699,6 +700,20 @@ def summary_table(report: EvaluationReport, *, n_values: Sequence[int] = (1, 5, 
     if report.verified is not None:
         lines.append(verification_table(report))
     return "\n".join(lines)
+
+
+def throughput_line(report: EvaluationReport) -> str:
+    """Keyframes per second of the whole run and where a keyframe's time went (the first method's stages)."""
+    keyframes = int(report.counts.get("keyframes", 0))
+    if not keyframes or report.wall_time_s <= 0:
+        return "throughput: no keyframe"
+    stages = {k: v for k, v in report.methods[0].latency.items() if k != "total"} if report.methods else {}
+    staged = sum(v.mean_ms for v in stages.values()) * keyframes / 1e3
+    run = report.wall_time_s - report.setup_time_s
+    parts = ", ".join(f"{k} {v.mean_ms:.2f}" for k, v in stages.items())
+    return (f"throughput: {keyframes} keyframes in {run:.1f} s = {keyframes / run:.1f} keyframes/s (after "
+            f"{report.setup_time_s:.1f} s of setup); per keyframe (mean ms) {parts}; the other {run - staged:.1f} s: "
+            "reading the bag, frames that were not keyframes, the evaluation")
 
 
 def _op(point: OperatingPoint | None) -> str:

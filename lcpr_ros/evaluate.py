@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from lcpr_core.errors import LcprError
-from lcpr_core.evaluation import summary_table
+from lcpr_core.evaluation import summary_table, throughput_line
 from lcpr_core.keyframes import KeyframeConfig
 from lcpr_core.lcpr.describer import PRECISIONS, RUNTIMES, ModelConfig
 from lcpr_core.lcpr.detector import DetectorConfig
@@ -33,6 +33,7 @@ from lcpr_core.lcpr.evaluate import (  # noqa: F401 - the evaluation's API, impo
     write_outputs,
 )
 from lcpr_core.lcpr.preprocess import PRESETS
+from lcpr_core.lcpr.preprocess.cameras import DECODERS
 from lcpr_core.scan_context import ScanContextConfig
 from lcpr_core.verification import VerifierConfig
 from msg_tools.errors import MsgToolsError
@@ -62,6 +63,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     g.add_argument("--threads", type=int, default=0, help="torch threads (default: torch's choice)")
     g.add_argument("--device", default=None,
                    help="torch device, e.g. cuda:0 (default cpu, or the parameter file's model.device)")
+    g.add_argument("--batch", type=int, default=1,
+                   help="frames whose keyframes are described in one network call, then matched in order as "
+                        "online (default 1: on the H100 measured, one replayed CUDA graph per keyframe beat eager "
+                        "batches of 32)")
+    g.add_argument("--decode", choices=DECODERS, default=NODE.detector.model.decode,
+                   help="camera decoding, as the node's model.decode (default %(default)s: nvJPEG on a GPU, "
+                        "reduced-size libjpeg-turbo on the CPU)")
     g.add_argument("--image-size", type=int, nargs=2, metavar=("H", "W"), default=None,
                    help="camera input size, multiples of 32 (default 256 704, the released model's)")
     g.add_argument("--lidar", choices=sorted(PRESETS), default=None,
@@ -117,7 +125,8 @@ _FILE_SETTINGS = (("image_size", None), ("lidar", None), ("camera_topics", None)
                   ("exclude_recent", NODE.detector.match.exclude_recent_s),
                   ("keyframe_interval", NODE.detector.keyframe.min_interval),
                   ("keyframe_distance", NODE.detector.keyframe.min_distance),
-                  ("precision", NODE.detector.model.precision), ("runtime", NODE.detector.model.runtime))
+                  ("precision", NODE.detector.model.precision), ("runtime", NODE.detector.model.runtime),
+                  ("decode", NODE.detector.model.decode))
 
 
 def options_from_params_file(args: argparse.Namespace) -> EvalOptions:
@@ -150,7 +159,8 @@ def _evaluation_options(args: argparse.Namespace) -> dict[str, Any]:
     return dict(radius=args.radius,
                 scan_context=None if args.no_scan_context else ScanContextConfig(lidar_height=args.lidar_height),
                 sc_max_distance=args.sc_max_distance, limit=args.limit, warmup=args.warmup,
-                split_offset=args.split_offset, base_frame=args.base_frame, drift_seed=args.drift_seed)
+                split_offset=args.split_offset, base_frame=args.base_frame, drift_seed=args.drift_seed,
+                batch=args.batch)
 
 
 def options_from_args(args: argparse.Namespace) -> EvalOptions:
@@ -170,7 +180,7 @@ def options_from_args(args: argparse.Namespace) -> EvalOptions:
         weights=args.weights, imagenet=args.imagenet, seed=args.seed, num_cameras=len(topics.cameras),
         image_size=tuple(args.image_size) if args.image_size else ModelConfig().image_size,
         lidar=args.lidar or LIDAR_FOR_TOPICS[args.topics], precision=args.precision, threads=args.threads,
-        runtime=args.runtime, device=args.device or "cpu",
+        runtime=args.runtime, device=args.device or "cpu", decode=args.decode,
     )
     return EvalOptions(
         topics=topics, model=model,
@@ -192,6 +202,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     print(f"\nlcpr_eval {args.bag} ({report.wall_time_s:.1f} s)")
     print(summary_table(report, n_values=N_VALUES))
+    print(throughput_line(report))
     if not (args.weights or args.imagenet):
         print("note: LCPR ran with random weights (no --weights): its numbers are not those of a trained model")
     print("written: " + ", ".join(str(p) for p in paths))

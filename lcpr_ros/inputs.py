@@ -72,10 +72,15 @@ def raw_payload(msg: Any) -> Any:
 
 
 def camera_input(payload: Any, *, draft_size: tuple[int, int] | None = None) -> CameraInput:
-    """A payload from :func:`compressed_payload` / :func:`raw_payload` -> decoded RGB image."""
+    """A payload from :func:`compressed_payload` / :func:`raw_payload` -> what the describer reads.
+
+    Compressed bytes pass through undecoded: the describer decodes them at the size the network needs
+    (on the GPU with ``decode: nvjpeg``) and reports bytes it cannot decode per camera. With
+    ``draft_size`` they are decoded here by PIL's draft mode instead. Raw images become RGB arrays.
+    """
     try:
         if isinstance(payload, bytes):
-            return decode_image(payload, draft_size=draft_size)
+            return payload if draft_size is None else decode_image(payload, draft_size=draft_size)
         return image_to_rgb(payload)
     except (InputShapeError, ImageError) as err:
         raise InputRejected(IMAGE_DECODE, str(err)) from err

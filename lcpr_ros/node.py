@@ -39,7 +39,7 @@ from ros_common.stats import Counts, NodeStats, Window
 from ros_common.worker import Worker
 
 from .config import NodeConfig
-from .inputs import CLOUD_NAN, camera_input, cloud_points, compressed_payload, raw_payload
+from .inputs import CLOUD_NAN, IMAGE_DECODE, camera_input, cloud_points, compressed_payload, raw_payload
 from .mapstore import load_prior_map, save_map
 from .markers import LoopMarkers, MarkerSink, NoMarkers
 from .outputs import candidates_msg, loop_closure_msg
@@ -199,15 +199,13 @@ class LcprNode(NodeStats, Node):
 
     # -- worker thread -------------------------------------------------------------------------
     def _process(self, synced: SyncedFrame) -> None:
-        cfg = self.settings.detector
-        draft = (cfg.model.image_size[1], cfg.model.image_size[0]) if cfg.model.fast_decode else None
         images: list[CameraInput | None] = []
         for k, payload in enumerate(synced.cameras):
             if payload is None:
                 images.append(None)
                 continue
             try:
-                images.append(camera_input(payload, draft_size=draft))
+                images.append(camera_input(payload))  # compressed bytes stay bytes: the describer decodes them
             except InputRejected as err:
                 self._reject(InputRejected(err.reason, f"{self.settings.node.camera_topics[k]}: {err.detail}"))
                 images.append(None)
@@ -220,6 +218,8 @@ class LcprNode(NodeStats, Node):
                 self.detector.start_session()
             result = self.detector.process(frame)
             max_distance = self.detector.config.match.max_distance
+        for k, why in result.camera_errors.items():  # undecodable bytes: that camera left out of this frame
+            self._reject(InputRejected(IMAGE_DECODE, f"{self.settings.node.camera_topics[k]}: {why}"))
         self.decisions.add(result.reason)
         if result.keyframe_id is None:
             return

@@ -11,6 +11,7 @@ import math
 from lcpr_core.descriptor_map import INDEX_TYPES
 from lcpr_core.lcpr.describer import PRECISIONS, RUNTIMES
 from lcpr_core.lcpr.preprocess import CUSTOM, PRESETS
+from lcpr_core.lcpr.preprocess.cameras import DECODERS
 from ros_common.config import SHARED_DOCS
 from ros_common.params import ParamDoc
 
@@ -53,15 +54,21 @@ DOCS: dict[str, ParamDoc] = {
     "model.lidar_geometry.min_xy": ParamDoc("m, half size of the ego box left out (model.lidar custom)"),
     "model.range_size": ParamDoc("[height, width] of the range image, multiples of 8; [0, 0] = the preset's"),
     "model.width": ParamDoc("channel multiplier of the network (1.0 = released; must match the weights)", 0.0, 4.0),
-    "model.precision": ParamDoc("inference path: auto (the fastest exact one on this machine, measured at start), "
-                                "fp32 / bf16 (torch), onnx (ONNX Runtime, exact), int8 (needs lcpr_quantize)",
-                                choices=PRECISIONS),
+    "model.precision": ParamDoc("inference path: auto (CPU: the fastest exact one, measured at start; GPU: the "
+                                "fastest of fp32 / tf32 / bf16 within cosine 0.9999 of exact fp32), fp32 (on a GPU "
+                                "with TF32 off: the exact network), tf32 (GPU), bf16 (autocast), onnx (ONNX Runtime, "
+                                "exact), int8 (needs lcpr_quantize)", choices=PRECISIONS),
     "model.runtime": ParamDoc("what runs the exported graph (precision onnx / int8): auto (int8: the faster of "
                               "the two, measured at start; onnx: onnxruntime), onnxruntime, openvino",
                               choices=RUNTIMES),
     "model.device": ParamDoc("torch device, e.g. cpu or cuda:0"),
     "model.threads": ParamDoc("torch intra-op threads; 0 = torch's default", 0, 1024),
-    "model.fast_decode": ParamDoc("JPEG draft-mode decoding of compressed images (faster, slightly different pixels)"),
+    "model.cuda_graph": ParamDoc("on a GPU, replay the network from a CUDA graph of one frame (or its six turns); "
+                                 "false = eager passes"),
+    "model.decode": ParamDoc("camera decoding: auto (nvjpeg on a GPU where torchvision imports, else turbo), turbo "
+                             "(libjpeg-turbo at a reduced size, antialiased resize; CPU), nvjpeg (GPU), pil (the "
+                             "released pipeline, slowest)", choices=DECODERS),
+    "model.fast_decode": ParamDoc("with decode pil: JPEG draft-mode decoding (faster, slightly different pixels)"),
     "model.whitening": ParamDoc("apply the descriptor whitening stored in the weights file, when it has one "
                                 "(the bundled weights do; lcpr_train --whiten)"),
     "model.turn_average": ParamDoc("average each descriptor over the six camera-slot turns (six network passes) "

@@ -1,10 +1,12 @@
-"""model.device cuda: descriptors, auto's choice, evaluation options and a training step on a GPU.
+"""model.device cuda: exact and fast paths, GPU preprocessing, auto's choice, evaluation options and training.
 
 Every test here needs torch.cuda; without a GPU they skip (the rest of the suite covers the CPU paths).
 """
 from __future__ import annotations
 
 import argparse
+import copy
+import json
 from pathlib import Path
 from typing import Any
 
@@ -12,9 +14,14 @@ import numpy as np
 import pytest
 import torch
 
-from lcpr_core import LCPR, Describer, ModelConfig
+from lcpr_core import LCPR, Describer, ModelConfig, range_image
 from lcpr_core.errors import RuntimeSetupError
+from lcpr_core.lcpr.preprocess import PRESETS
+from lcpr_core.lcpr.preprocess.dataset_files import find_nuscenes_keyframe
+from lcpr_core.lcpr.preprocess.range_image import range_image_tensor
 from lcpr_core.lcpr.runtime.choose import cosine, probe_inputs
+from lcpr_core.lcpr.runtime.cuda import GPU_COSINE, GraphBackend
+from lcpr_core.pretrained import default_weights
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU on this machine")
 
@@ -37,10 +44,81 @@ def test_cuda_bf16_stays_close_to_the_cpu() -> None:
     assert cosine(gpu.describe_tensors(images, ranges), cpu.describe_tensors(images, ranges)) >= 0.999
 
 
-def test_auto_on_a_gpu_is_torch_fp32_and_the_cpu_only_paths_are_refused_there() -> None:
-    assert Describer(ModelConfig(precision="auto", device="cuda", **NARROW)).path == "fp32"
+def test_auto_on_a_gpu_keeps_a_captured_path_within_cosine_0_9999_and_the_cpu_only_paths_are_refused_there(
+        caplog: pytest.LogCaptureFixture) -> None:
+    with caplog.at_level("INFO"):
+        describer = Describer(ModelConfig(precision="auto", device="cuda", **NARROW))
+    assert describer.path in ("fp32", "tf32", "bf16")
+    assert describer.choice.cosines[describer.path] >= GPU_COSINE
+    assert torch.cuda.get_device_name() in caplog.text
     with pytest.raises(RuntimeSetupError, match="CPU only"):
         Describer(ModelConfig(precision="onnx", device="cuda", **NARROW))
+
+
+def test_exact_fp32_on_the_gpu_reproduces_the_reference_vectors_to_1e_5_eager_and_replayed(shared, detweights
+                                                                                          ) -> None:
+    ref_file = shared / "reference" / "lcpr" / "expected_seed0.npz"
+    expected = np.load(ref_file)
+    keys = json.loads((shared / "reference" / "lcpr" / "keys.json").read_text())
+    model = LCPR().eval()
+    model.load_state_dict(detweights.det_state_dict(keys, 0))
+    describer = Describer(ModelConfig(precision="fp32", device="cuda"), model=model.cuda())
+    assert isinstance(describer.backend, GraphBackend) and describer.backend.captured
+    images, ranges = detweights.det_camera_input(2, 0), detweights.det_range_input(2, 0)
+    eager = describer.backend(images, ranges)  # batch 2: the eager path
+    replayed = np.concatenate([describer.backend(images[i:i + 1], ranges[i:i + 1]) for i in range(2)])  # the graph
+    np.testing.assert_allclose(eager, expected["descriptor"], atol=1e-5, rtol=0)
+    np.testing.assert_allclose(replayed, expected["descriptor"], atol=1e-5, rtol=0)
+
+
+def test_a_failed_graph_capture_leaves_the_eager_path_with_a_warning(monkeypatch, caplog) -> None:
+    def broken(*_: object, **__: object) -> Any:
+        raise RuntimeError("capture refused")
+
+    monkeypatch.setattr(torch.cuda, "graph", broken)
+    with caplog.at_level("WARNING"):
+        gpu = Describer(ModelConfig(precision="fp32", device="cuda", **NARROW))
+    assert gpu.model is not None
+    cpu = Describer(ModelConfig(precision="fp32", **NARROW), model=copy.deepcopy(gpu.model).cpu())
+    assert cpu.model is not None
+    assert isinstance(gpu.backend, GraphBackend) and not gpu.backend.captured
+    assert "capture refused" in caplog.text
+    images, ranges = probe_inputs(cpu.model)
+    assert cosine(gpu.describe_tensors(images, ranges), cpu.describe_tensors(images, ranges)) >= 0.99999
+
+
+def test_the_gpu_frame_path_decodes_with_nvjpeg_and_keeps_the_descriptor_of_the_cpu_reference_path(
+        shared: Path) -> None:
+    pytest.importorskip("torchvision.io", reason="torchvision (nvJPEG) not importable here")
+    weights = default_weights()
+    assert weights is not None
+    gpu = Describer(ModelConfig(weights=str(weights), device="cuda"))
+    reference = Describer(ModelConfig(weights=str(weights), precision="fp32", decode="pil"))
+    assert gpu.cameras.decoder == "nvjpeg"
+    for name in ("nuscenes_sample", "nuscenes_sample2"):
+        images, points = find_nuscenes_keyframe(shared / "data" / name).read()
+        prepared = gpu.prepare(images, points)
+        assert prepared.images.is_cuda and prepared.ranges.is_cuda and not prepared.failed
+        assert float(np.dot(gpu.describe(images, points), reference.describe(images, points))) >= 0.9999
+
+
+def test_the_gpu_range_image_equals_the_cpu_one_on_a_real_sweep(shared: Path) -> None:
+    _, points = find_nuscenes_keyframe(shared / "data" / "nuscenes_sample").read()
+    gpu = range_image_tensor(torch.from_numpy(points).cuda(), preset=PRESETS["nuscenes_lidar_top"])
+    differ = int((gpu.cpu().numpy() != range_image(points)).sum())
+    assert differ <= 5  # the device's atan2 / asin may differ from libm's in the last bit at a pixel border
+
+
+def test_a_corrupt_jpeg_on_the_gpu_path_leaves_only_its_camera_empty(shared: Path) -> None:
+    pytest.importorskip("torchvision.io", reason="torchvision (nvJPEG) not importable here")
+    images, points = find_nuscenes_keyframe(shared / "data" / "nuscenes_sample").read()
+    gpu = Describer(ModelConfig(device="cuda", decode="nvjpeg", **NARROW))
+    broken = list(images)
+    broken[2] = images[2][: len(images[2]) // 2]  # truncated
+    broken[4] = b"\xff\xd8\xff\xe0" + bytes(1000) + b"\xff\xd9"  # a header and nothing decodable
+    prepared = gpu.prepare(broken, points)
+    assert set(prepared.failed) >= {2} and set(prepared.failed) <= {2, 4}
+    assert float(prepared.images[0, 2].abs().sum()) == 0 and float(prepared.images[0, 0].abs().sum()) > 0
 
 
 def test_lcpr_eval_takes_the_device_from_its_flag() -> None:

@@ -9,7 +9,7 @@ import torch
 
 from lcpr_core.descriptor_map import DescriptorMap
 from lcpr_core.errors import MapSchemaError
-from lcpr_core.lcpr.describer import Describer
+from lcpr_core.lcpr.describer import Describer, Prepared
 from lcpr_core.lcpr.detector import DetectorConfig, Frame, KeyframeConfig, LoopDetector, MatchConfig, SensorConfig
 from lcpr_core.verification import VerifierConfig
 
@@ -24,15 +24,19 @@ class PlaceDescriber:
     def inputs(self, images, points):
         return torch.zeros(1), torch.as_tensor(np.asarray(points, np.float64)[:1])
 
+    def prepare(self, images, points):
+        return Prepared(*self.inputs(images, points))
+
     def describe_tensors(self, images, ranges):
-        x, y = ranges[0, 0].item(), ranges[0, 1].item()
-        rng = np.random.default_rng(int(round(x)) * 100_003 + int(round(y)))
-        v = rng.normal(size=256).astype(np.float32)
-        return (v / np.linalg.norm(v))[None]
+        rows = []
+        for x, y in ranges[:, :2].tolist():
+            v = np.random.default_rng(int(round(x)) * 100_003 + int(round(y))).normal(size=256).astype(np.float32)
+            rows.append(v / np.linalg.norm(v))
+        return np.stack(rows)
 
 
 def place_describer() -> Describer:
-    """A PlaceDescriber in a Describer's place: the detector calls only inputs and describe_tensors."""
+    """A PlaceDescriber in a Describer's place: the detector calls only prepare and describe_tensors."""
     return cast(Describer, PlaceDescriber())
 
 
@@ -188,3 +192,16 @@ def test_a_prior_map_that_does_not_say_which_weights_made_it_is_used_with_a_warn
     assert "does not record which weights made it" in caplog.text
     empty = LoopDetector(DetectorConfig(verify=RETRIEVAL_ONLY), describer=place_describer(), prior_map=DescriptorMap())
     assert empty.map.weights_id == "place-test"
+
+
+def test_frames_processed_in_batches_give_the_results_of_one_frame_at_a_time():
+    frames = [frame(float(t), float(t)) for t in range(60)] + [frame(100.0 + t, float(t)) for t in range(10)]
+    frames.insert(30, frame(29.5, 29.5))  # out of order: not a keyframe, in the middle of a batch
+    single, batched = detector(), detector()
+    one = [single.process(f) for f in frames]
+    many = [r for i in range(0, len(frames), 8) for r in batched.process_batch(frames[i:i + 8])]
+    assert [r.reason for r in one] == [r.reason for r in many]
+    assert [r.keyframe_id for r in one] == [r.keyframe_id for r in many]
+    assert [[(c.match_id, c.distance) for c in r.candidates] for r in one] == \
+        [[(c.match_id, c.distance) for c in r.candidates] for r in many]
+    assert sum(r.loop is not None for r in many) == 10

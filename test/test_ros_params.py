@@ -61,7 +61,7 @@ def test_building_the_config_from_parameter_values_round_trips() -> None:
 
 @pytest.mark.parametrize(("name", "value", "reason"), [
     ("match.top_k", 0, "top_k"),
-    ("model.precision", "fp16", "accepted: fp32, bf16"),
+    ("model.precision", "fp16", "accepted: fp32, tf32, bf16"),
     ("model.lidar", "ouster", "unknown LiDAR preset"),
     ("map.index", "ivf", "accepted: flat, hnsw"),
     ("camera_type", "jpeg", "accepted: auto, compressed, raw"),

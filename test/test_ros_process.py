@@ -257,7 +257,7 @@ def test_a_corrupt_map_file_is_refused_with_a_nonzero_exit_and_left_unchanged(wo
 
 @pytest.mark.parametrize(("args", "reason"), [
     (["-p", "match.top_k:=0"], "match.top_k out of range"),
-    (["-p", "model.precision:=fp16"], "accepted: fp32, bf16"),
+    (["-p", "model.precision:=fp16"], "accepted: fp32, tf32, bf16"),
     (["-p", "camera_topics:=[/a,/b]"], "camera_topics names 2 topics but model.num_cameras=6"),
 ])
 def test_invalid_parameters_refuse_the_start_with_a_reason_and_a_nonzero_exit(

@@ -97,7 +97,7 @@ def test_int8_without_its_graph_is_refused_naming_the_command_that_makes_it(tmp_
 
 
 def test_an_unknown_precision_names_the_accepted_ones() -> None:
-    with pytest.raises(ValueError, match="accepted: fp32, bf16, onnx, int8, auto"):
+    with pytest.raises(ValueError, match="accepted: fp32, tf32, bf16, onnx, int8, auto"):
         ModelConfig(precision="fp16")
 
 

@@ -13,21 +13,24 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..errors import CheckpointError, InvalidValueError
+from ..errors import CheckpointError, DeviceError, InputShapeError, InvalidValueError
 from ..fingerprint import tensors_id
 from .checkpoint import init_from_imagenet, load_checkpoint, load_weights
 from .models import LCPR
-from .preprocess import CUSTOM, LidarGeometry, LidarPreset, cameras_tensor, lidar_preset, range_image
+from .preprocess import CUSTOM, LidarGeometry, LidarPreset, lidar_preset, range_image
 from .preprocess.camera import CameraInput
+from .preprocess.cameras import DECODERS, CameraPreprocessor
+from .preprocess.range_image import range_image_tensor
 from .runtime import Backend, Choice, choose_backend
 from .turn_average import TURNS, average_turns, turn_average_in, turned_batch
 from .whitening import Whitening, whitening_in
 
 log = logging.getLogger(__name__)
 
-#: fp32 / bf16: torch (bf16 = autocast); onnx: the exported graph in ONNX Runtime (exact); int8: its
+#: fp32 / bf16: torch (bf16 = autocast; fp32 on a GPU with TF32 off: the exact network); tf32: torch on a GPU
+#: with TF32 convolutions and matrix products; onnx: the exported graph in ONNX Runtime (exact); int8: its
 #: statically quantised graph (made by lcpr_quantize); auto: the fastest exact one here (lcpr_core.lcpr.runtime).
-PRECISIONS = ("fp32", "bf16", "onnx", "int8", "auto")
+PRECISIONS = ("fp32", "tf32", "bf16", "onnx", "int8", "auto")
 #: What runs an exported graph (onnx, int8): auto = for int8 the faster of the two here, for onnx ONNX Runtime.
 RUNTIMES = ("auto", "onnxruntime", "openvino")
 #: ModelConfig fields a checkpoint's 'config' entry fixes (the architecture and its input sizes).
@@ -50,14 +53,18 @@ class ModelConfig:
     precision: str = "auto"  # auto | fp32 | bf16 (autocast) | onnx | int8 (see PRECISIONS)
     runtime: str = "auto"  # auto | onnxruntime | openvino: what runs the exported graph (see RUNTIMES)
     device: str = "cpu"
+    cuda_graph: bool = True  # on a GPU, replay each precision's forward pass from a CUDA graph (runtime.cuda)
     threads: int = 0  # torch intra-op threads; 0 = leave torch's default
-    fast_decode: bool = False  # JPEG draft-mode decoding of compressed images
+    decode: str = "auto"  # camera decoding: auto | turbo | nvjpeg | pil (see preprocess.cameras.DECODERS)
+    fast_decode: bool = False  # with decode "pil": JPEG draft-mode decoding of compressed images
     whitening: bool = True  # apply the weights file's descriptor whitening, when it has one (.whitening)
     turn_average: bool = True  # average over the six camera-slot turns when the weights file asks (.turn_average)
 
     def __post_init__(self) -> None:
         if self.precision not in PRECISIONS:
             raise InvalidValueError(f"precision={self.precision!r}; accepted: {', '.join(PRECISIONS)}")
+        if self.decode not in DECODERS:
+            raise InvalidValueError(f"decode={self.decode!r}; accepted: {', '.join(DECODERS)}")
         if self.runtime not in RUNTIMES:
             raise InvalidValueError(f"runtime={self.runtime!r}; accepted: {', '.join(RUNTIMES)}")
         if self.lidar == CUSTOM:
@@ -163,6 +170,15 @@ def build_model(config: ModelConfig = ModelConfig()) -> LCPR:
 
 
 @dataclass
+class Prepared:
+    """One frame's network inputs and the cameras whose images could not be used."""
+
+    images: torch.Tensor  # 1 x N x 3 x H x W, on the model's device
+    ranges: torch.Tensor  # 1 x 1 x h x w
+    failed: dict[int, str] = field(default_factory=dict)  # camera slot -> why its image was left out
+
+
+@dataclass
 class Describer:
     """Raw cameras + cloud -> a 256-d unit descriptor, with the configured precision."""
 
@@ -175,8 +191,6 @@ class Describer:
             torch.set_num_threads(self.config.threads)
         if self.model is None:
             self.model = build_model(self.config)
-        self.choice: Choice = choose_backend(self.config, self.model)
-        self.backend: Backend = self.choice.backend  # the path descriptors are computed on
         # the descriptor post-processing the weights file carries, read from it once
         stored = (load_checkpoint(self.config.weights, mmap=True)
                   if self.config.weights and (self.config.whitening or self.config.turn_average) else None)
@@ -194,6 +208,13 @@ class Describer:
                     f"{self.config.weights} asks for turn averaging, defined for the {TURNS}-camera rig; "
                     f"num_cameras={self.config.num_cameras} (set model.turn_average: false)")
             log.info("LCPR: descriptors averaged over %d camera-slot turns as %s asks", TURNS, self.config.weights)
+        #: camera images -> the network's input tensor, on the network's device
+        self.cameras = CameraPreprocessor(size=self.config.image_size, device=self.config.device,
+                                          decoder=self.config.decode, draft=self.config.fast_decode)
+        # a frame is one network pass, or one batch of the six turns: what a GPU path captures
+        self.choice: Choice = choose_backend(self.config, self.model, batch=TURNS if self.turn_average else 1)
+        self.backend: Backend = self.choice.backend  # the path descriptors are computed on
+        self._ranges_on_device = torch.device(self.config.device).type == "cuda"
 
     @functools.cached_property
     def weights_id(self) -> str:
@@ -220,17 +241,43 @@ class Describer:
     def inputs(
         self, images: Sequence[CameraInput | None], points: np.ndarray
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Preprocess one frame -> (1 x N x 3 x H x W, 1 x 1 x h x w)."""
-        cams = cameras_tensor(images, size=self.config.image_size, fast_decode=self.config.fast_decode)
-        rng = torch.from_numpy(range_image(points, preset=self.config.range_preset))
-        return cams.unsqueeze(0), rng.view(1, 1, *rng.shape)
+        """Preprocess one frame -> (1 x N x 3 x H x W, 1 x 1 x h x w) on the model's device.
+
+        An image that cannot be decoded raises :class:`~lcpr_core.errors.InputShapeError`;
+        :meth:`prepare` leaves its slot empty instead.
+        """
+        prepared = self.prepare(images, points, strict=True)
+        return prepared.images, prepared.ranges
+
+    def prepare(self, images: Sequence[CameraInput | None], points: np.ndarray, *,
+                strict: bool = False) -> Prepared:
+        """Preprocess one frame; a camera whose image is unusable is left empty (as a missing one) and named
+        in ``failed`` with the reason, unless ``strict``."""
+        cams, failed = self.cameras(images, strict=strict)
+        return Prepared(cams.unsqueeze(0), self.range_tensor(points)[None, None], failed)
+
+    def range_tensor(self, points: np.ndarray) -> torch.Tensor:
+        """N x >=3 points -> h x w range image on the model's device (computed there on a GPU)."""
+        preset = self.config.range_preset
+        if not self._ranges_on_device:
+            return torch.from_numpy(range_image(points, preset=preset))
+        pts = np.asarray(points)
+        if pts.ndim != 2 or pts.shape[1] < 3:
+            raise InputShapeError(f"points have shape {pts.shape}; expected N x 3 or more columns (x, y, z, ...)")
+        xyz = torch.from_numpy(np.ascontiguousarray(pts[:, :3], dtype=np.float32))
+        return range_image_tensor(xyz.to(self.config.device, non_blocking=True), preset=preset)
 
     def describe_tensors(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:
         """Batched model inputs -> B x 256 float32 unit descriptors (whitened and averaged over the turns
-        when the weights say so)."""
-        if not self.turn_average:
-            return self.postprocess(self.backend(images, ranges))
-        return average_turns(self.postprocess(self.backend(*turned_batch(images, ranges))), images.shape[0])
+        when the weights say so). A GPU out of memory raises :class:`~lcpr_core.errors.DeviceError`."""
+        try:
+            if not self.turn_average:
+                return self.postprocess(self.backend(images, ranges))
+            return average_turns(self.postprocess(self.backend(*turned_batch(images, ranges))), images.shape[0])
+        except torch.cuda.OutOfMemoryError as err:
+            torch.cuda.empty_cache()
+            raise DeviceError(f"{self.config.device} ran out of memory describing {images.shape[0]} frame(s); "
+                              f"skipped ({str(err).splitlines()[0]})") from err
 
     def postprocess(self, desc: np.ndarray) -> np.ndarray:
         """B x 256 network outputs -> what the weights file's whitening makes of them (unit descriptors)."""

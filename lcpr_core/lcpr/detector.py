@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 from typing import cast
 
 import numpy as np
+import torch
 
 from ..descriptor_map import DescriptorMap, MapConfig, Match
 from ..errors import InvalidValueError, MapSchemaError
@@ -120,6 +121,7 @@ class Result:
     timings: dict[str, float] = field(default_factory=dict)  # stage -> seconds
     verification: bool = True  # candidates were verified (the loop must be a verified one)
     errors: list[str] = field(default_factory=list)  # why a candidate's verification "failed" (an exception)
+    camera_errors: dict[int, str] = field(default_factory=dict)  # camera slot -> why its image was left out
 
     @property
     def loop(self) -> Candidate | None:
@@ -154,6 +156,7 @@ class LoopDetector:
         self._session_start = len(self.map)  # rows before this index come from earlier sessions
         self._session_stamps: list[float] = []
         self._last_stamp = -np.inf
+        self._kf_stamp: float | None = None  # the newest keyframe decided on (described or about to be)
         self._last_position: np.ndarray | None = None
         self.verifier = GeometricVerifier(config.verify)
         self._prepared: OrderedDict[int, PreparedCloud] = OrderedDict()
@@ -187,26 +190,67 @@ class LoopDetector:
         self._session_start = len(self.map)
         self._session_stamps = []
         self._last_stamp = -np.inf
+        self._kf_stamp = None
         self._last_position = None
 
     def process(self, frame: Frame) -> Result:
         """Decide on one frame; describe, match and store it when it becomes a keyframe."""
-        reason = self._keyframe_reason(frame)
-        missing = tuple(i for i, img in enumerate(frame.images) if img is None)
-        result = Result(stamp=frame.stamp, keyframe_id=None, reason=reason, missing_cameras=missing)
-        if frame.stamp > self._last_stamp:
-            self._last_stamp = frame.stamp
-        if reason != "keyframe":
-            return result
+        return self.process_batch([frame])[0]
 
+    def process_batch(self, frames: Sequence[Frame]) -> list[Result]:
+        """Frames in stamp order, their keyframes described in one network batch (a GPU's throughput), then
+        matched, stored and verified one by one in order: each searches only the keyframes before it, as
+        :meth:`process` on each frame would. Keyframing depends on stamps and poses only, so it is decided first.
+        """
+        decided = (self._kf_stamp, self._last_position)
+        results, keyframes = [], []
+        for frame in frames:
+            reason = self._keyframe_reason(frame)
+            missing = tuple(i for i, img in enumerate(frame.images) if img is None)
+            result = Result(stamp=frame.stamp, keyframe_id=None, reason=reason, missing_cameras=missing)
+            if frame.stamp > self._last_stamp:
+                self._last_stamp = frame.stamp
+            results.append(result)
+            if reason == "keyframe":
+                keyframes.append((frame, result))
+                self._kf_stamp = frame.stamp
+                if frame.pose is not None:
+                    self._last_position = np.asarray(frame.pose, np.float64)[:3, 3]
+        if not keyframes:
+            return results
+        try:
+            descriptors = self._describe(keyframes)
+        except Exception:
+            self._kf_stamp, self._last_position = decided  # nothing was stored: keyframing goes on as before
+            raise
+        for (frame, result), desc in zip(keyframes, descriptors, strict=True):
+            self._store(frame, result, desc)
+        return results
+
+    def _describe(self, keyframes: list[tuple[Frame, Result]]) -> np.ndarray:
+        """K x D descriptors of the keyframes, one network call; cameras that could not be used are marked."""
+        prepared = []
+        for frame, result in keyframes:
+            tic = time.perf_counter()
+            points = frame.points if frame.points is not None else np.zeros((0, 3), np.float32)
+            p = self.describer.prepare(frame.images, points)
+            if p.failed:  # unusable images: those cameras count as missing (degraded frame)
+                result.missing_cameras = tuple(sorted(set(result.missing_cameras) | set(p.failed)))
+                result.camera_errors = dict(p.failed)
+            prepared.append(p)
+            result.timings["preprocess"] = time.perf_counter() - tic
         tic = time.perf_counter()
+        images = prepared[0].images if len(prepared) == 1 else torch.cat([p.images for p in prepared])
+        ranges = prepared[0].ranges if len(prepared) == 1 else torch.cat([p.ranges for p in prepared])
+        descriptors = self.describer.describe_tensors(images, ranges)
+        share = (time.perf_counter() - tic) / len(keyframes)
+        for _, result in keyframes:
+            result.timings["network"] = share
+        return descriptors
+
+    def _store(self, frame: Frame, result: Result, desc: np.ndarray) -> None:
+        """Match a described keyframe against the map before it, add it, verify its candidates."""
         points = frame.points if frame.points is not None else np.zeros((0, 3), np.float32)
-        images, ranges = self.describer.inputs(frame.images, points)
-        result.timings["preprocess"] = time.perf_counter() - tic
-        tic = time.perf_counter()
-        desc = self.describer.describe_tensors(images, ranges)[0]
-        result.timings["network"] = time.perf_counter() - tic
-
         tic = time.perf_counter()
         hits = self._search(desc, frame.stamp)
         result.timings["search"] = time.perf_counter() - tic
@@ -216,8 +260,9 @@ class LoopDetector:
         (new_id,) = self.map.add(desc, stamps=frame.stamp, poses=None if position is None else position[None],
                                  sources=self.config.session)
         result.keyframe_id = int(new_id)
+        degraded = bool(result.missing_cameras)
         result.candidates = [
-            Candidate(int(new_id), h.id, frame.stamp, h.stamp, h.distance, rank, h.pose, bool(missing))
+            Candidate(int(new_id), h.id, frame.stamp, h.stamp, h.distance, rank, h.pose, degraded)
             for rank, h in enumerate(hits)
         ]
         result.timings["add"] = time.perf_counter() - tic
@@ -235,9 +280,6 @@ class LoopDetector:
             result.candidates = self._verify(compact, result.candidates, result.errors)
             result.timings["verify"] = time.perf_counter() - tic
         self._session_stamps.append(frame.stamp)
-        if position is not None:
-            self._last_position = position
-        return result
 
     def _verify(self, compact: np.ndarray, candidates: list[Candidate], errors: list[str]) -> list[Candidate]:
         """Each candidate with the verdict of registering the query cloud against the match's.
@@ -285,7 +327,7 @@ class LoopDetector:
             return "no lidar"
         position = None if frame.pose is None else np.asarray(frame.pose, np.float64)[:3, 3]
         return keyframe_reason(frame.stamp, position,
-                               last_stamp=self._session_stamps[-1] if self._session_stamps else None,
+                               last_stamp=self._kf_stamp,
                                last_position=self._last_position, min_interval=self.config.keyframe.min_interval,
                                min_distance=self.config.keyframe.min_distance)
 

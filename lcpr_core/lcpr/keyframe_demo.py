@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     config = ModelConfig(weights=args.weights, imagenet=args.imagenet, seed=args.seed, threads=args.threads)
     fp32 = Describer(config)
     bf16 = Describer(dataclasses.replace(config, precision="bf16"), model=fp32.model)
-    fast = Describer(dataclasses.replace(config, fast_decode=True), model=fp32.model)
+    pil = Describer(dataclasses.replace(config, decode="pil"), model=fp32.model)  # the released pipeline
     weights = args.weights or args.imagenet or f"seeded random initialisation (seed {args.seed}), NOT a trained model"
 
     print(f"\nLCPR descriptor demo on {data}")
@@ -73,18 +73,19 @@ def main(argv: list[str] | None = None) -> int:
 
     r = args.repeats
     t_cam = median_seconds(lambda: fp32.inputs(images, points), repeats=r)
-    t_cam_fast = median_seconds(lambda: fast.inputs(images, points), repeats=r)
+    t_cam_pil = median_seconds(lambda: pil.inputs(images, points), repeats=r)
     t_rng = median_seconds(lambda: range_image(points), repeats=r)
     t_fp32 = median_seconds(lambda: fp32.describe_tensors(cams, ranges), repeats=r)
     t_bf16 = median_seconds(lambda: bf16.describe_tensors(cams, ranges), repeats=r)
     print(f"\nTimes (median of {r}, {torch.get_num_threads()} threads):")
-    print(f"  preprocessing (6 JPEG decodes + resize + range image): {t_cam * 1e3:7.1f} ms "
-          f"(JPEG draft decode: {t_cam_fast * 1e3:.1f} ms); range image alone {t_rng * 1e3:.1f} ms")
+    print(f"  preprocessing (6 JPEG decodes + resize + range image): {t_cam * 1e3:7.1f} ms, decoder "
+          f"{fp32.cameras.decoder} (PIL, the released pipeline: {t_cam_pil * 1e3:.1f} ms); range image alone "
+          f"{t_rng * 1e3:.1f} ms")
     print(f"  network fp32: {t_fp32 * 1e3:7.1f} ms    bf16 (autocast): {t_bf16 * 1e3:7.1f} ms")
 
     changes = yaw_and_degradation(fp32, images, points, desc)
     changes["bf16 instead of fp32"] = bf16.describe_tensors(cams, ranges)[0]
-    changes["JPEG draft-mode decoding"] = fast.describe(images, points)
+    changes[f"decoder {fp32.cameras.decoder} instead of PIL (the released pipeline)"] = pil.describe(images, points)
     print("\nHow far the descriptor moves (1 - cosine; 0 = unchanged):")
     for label, other in changes.items():
         print(f"  {label:<68} {max(0.0, 1.0 - cosine(desc, other)):.2e}")

@@ -48,8 +48,11 @@ class KeyframeFiles:
 def find_nuscenes_keyframe(
     folder: str | os.PathLike[str], *, cameras: Sequence[str] = NUSCENES_CAMERAS
 ) -> KeyframeFiles:
-    """Find ``*__CAM_X__*.jpg`` for each camera and one ``*__LIDAR_TOP__*.pcd.bin`` in ``folder``."""
+    """One keyframe in ``folder``, in either layout: nuScenes' own file names (``*__CAM_X__*.jpg`` for each
+    camera and one ``*__LIDAR_TOP__*.pcd.bin``), or an export's ``imgs/CAM_X.jpg`` and one ``*.bin``."""
     root = Path(folder)
+    if (root / "imgs").is_dir() and not list(root.glob("*__LIDAR_TOP__*.pcd.bin")):
+        return _exported_keyframe(root, cameras)
     found = []
     for cam in cameras:
         matches = sorted(root.glob(f"*__{cam}__*.jpg"))
@@ -60,3 +63,13 @@ def find_nuscenes_keyframe(
     if len(lidar) != 1:
         raise DatasetFileError(f"expected one *__LIDAR_TOP__*.pcd.bin in {root}, found {len(lidar)}")
     return KeyframeFiles(tuple(found), lidar[0])
+
+
+def _exported_keyframe(root: Path, cameras: Sequence[str]) -> KeyframeFiles:
+    missing = [cam for cam in cameras if not (root / "imgs" / f"{cam}.jpg").is_file()]
+    if missing:
+        raise DatasetFileError(f"{root / 'imgs'} lacks {', '.join(f'{cam}.jpg' for cam in missing)}")
+    lidar = sorted(root.glob("*.bin"))
+    if len(lidar) != 1:
+        raise DatasetFileError(f"expected one *.bin LIDAR_TOP sweep in {root}, found {len(lidar)}")
+    return KeyframeFiles(tuple(root / "imgs" / f"{cam}.jpg" for cam in cameras), lidar[0])

@@ -6,9 +6,9 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import torch
 
 from ...errors import InputShapeError, InvalidValueError
-from ...points import rotate_z
 
 NO_RETURN = -1.0  # a range-image pixel no point falls in
 
@@ -108,30 +108,69 @@ def range_image(
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] < 3:
         raise InputShapeError(f"points have shape {pts.shape}; expected N x 3 or more columns (x, y, z, ...)")
-    xyz = pts[:, :3].astype(np.float64)
-    xyz = xyz[np.isfinite(xyz).all(axis=1)]
-    ego = (np.abs(xyz[:, 0]) < cfg.min_xy) & (np.abs(xyz[:, 1]) < cfg.min_xy)
-    xyz = rotate_z(xyz[~ego], cfg.yaw_offset_deg)
-
-    rng = np.linalg.norm(xyz, axis=1)
+    # one contiguous float64 array per axis: the arithmetic below reads each column many times
+    x, y, z = (pts[:, k].astype(np.float64) for k in range(3))
+    keep = np.isfinite(x + y + z) & ~((np.abs(x) < cfg.min_xy) & (np.abs(y) < cfg.min_xy))  # finite, not the ego box
+    x, y, z = x[keep], y[keep], z[keep]
+    if cfg.yaw_offset_deg != 0:
+        c, s = _turn(cfg.yaw_offset_deg)
+        x, y = c * x - s * y, s * x + c * y
+    rng = np.sqrt(x * x + y * y + z * z)  # np.linalg.norm's arithmetic, in its order
     keep = (rng > 0) & (rng < cfg.max_range)
-    xyz, rng = xyz[keep], rng[keep]
+    x, y, z, rng = x[keep], y[keep], z[keep], rng[keep]
+    pixel = _pixels(np.arctan2(y, x), np.arcsin(z / rng), cfg, np)
 
-    yaw = -np.arctan2(xyz[:, 1], xyz[:, 0])
-    pitch = np.arcsin(xyz[:, 2] / rng)
+    image = np.full(cfg.height * cfg.width, np.inf)
+    np.minimum.at(image, pixel, rng)  # each pixel keeps its nearest point
+    image[np.isinf(image)] = NO_RETURN
+    return image.astype(np.float32).reshape(cfg.height, cfg.width)
+
+
+def range_image_tensor(points: torch.Tensor, *, preset: LidarPreset) -> torch.Tensor:
+    """:func:`range_image` in torch, on the points' device (a GPU keeps the cloud where the network runs).
+
+    N x (>=3) points -> height x width float32; the same arithmetic in float64, the nearest point
+    per pixel by a scatter-min. Equal to :func:`range_image` except where a libm and the device's
+    arctan / arcsin differ in the last bit at a pixel border.
+    """
+    if points.dim() != 2 or points.shape[1] < 3:
+        raise InputShapeError(f"points have shape {tuple(points.shape)}; expected N x 3 or more columns")
+    _check_config(preset)
+    xyz = points[:, :3].to(torch.float64)
+    xyz = xyz[torch.isfinite(xyz.sum(dim=1))]
+    ego = (xyz[:, 0].abs() < preset.min_xy) & (xyz[:, 1].abs() < preset.min_xy)
+    xyz = xyz[~ego]
+    if preset.yaw_offset_deg != 0:
+        c, s = _turn(preset.yaw_offset_deg)
+        x, y = xyz[:, 0], xyz[:, 1]
+        xyz = torch.stack([c * x - s * y, s * x + c * y, xyz[:, 2]], dim=1)
+    rng = xyz.square().sum(dim=1).sqrt()
+    keep = (rng > 0) & (rng < preset.max_range)
+    xyz, rng = xyz[keep], rng[keep]
+    pixel = _pixels(torch.atan2(xyz[:, 1], xyz[:, 0]), torch.asin(xyz[:, 2] / rng), preset, torch)
+    image = torch.full((preset.height * preset.width,), float("inf"), dtype=torch.float64, device=points.device)
+    image.scatter_reduce_(0, pixel, rng, reduce="amin")
+    image = image.masked_fill_(torch.isinf(image), NO_RETURN)
+    return image.to(torch.float32).view(preset.height, preset.width)
+
+
+def _turn(angle_deg: float) -> tuple[float, float]:
+    """cos and sin of a turn about z, quarter turns exact (as :func:`lcpr_core.points.rotate_z`)."""
+    t = np.deg2rad(angle_deg)
+    c, s = float(np.cos(t)), float(np.sin(t))
+    if angle_deg % 90 == 0:
+        c, s = float(round(c)), float(round(s))
+    return c, s
+
+
+def _pixels(azimuth: Any, elevation: Any, cfg: LidarPreset, xp: Any) -> Any:
+    """Flat pixel index of each point from its azimuth and elevation (numpy or torch arrays, ``xp`` says which)."""
     fov_down = abs(np.deg2rad(cfg.fov_down_deg))
     fov = abs(np.deg2rad(cfg.fov_up_deg)) + fov_down
-    u = np.clip(np.floor(0.5 * (yaw / np.pi + 1.0) * cfg.width), 0, cfg.width - 1).astype(np.int64)
-    v = np.clip(np.floor((1.0 - (pitch + fov_down) / fov) * cfg.height), 0, cfg.height - 1).astype(np.int64)
-
-    image = np.full(cfg.height * cfg.width, NO_RETURN, dtype=np.float32)
-    pixel = v * cfg.width + u
-    order = np.lexsort((rng, pixel))  # by pixel, nearest first within a pixel
-    first = np.ones(order.size, dtype=bool)
-    first[1:] = pixel[order[1:]] != pixel[order[:-1]]
-    nearest = order[first]
-    image[pixel[nearest]] = rng[nearest]
-    return image.reshape(cfg.height, cfg.width)
+    u = xp.clip(xp.floor(0.5 * (-azimuth / np.pi + 1.0) * cfg.width), 0, cfg.width - 1)
+    v = xp.clip(xp.floor((1.0 - (elevation + fov_down) / fov) * cfg.height), 0, cfg.height - 1)
+    flat = v * cfg.width + u
+    return flat.astype(np.int64) if xp is np else flat.to(torch.int64)
 
 
 def _check_config(cfg: LidarPreset, *, prefix: str = "") -> None:

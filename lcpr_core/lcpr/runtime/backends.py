@@ -29,16 +29,24 @@ def graph_feeds(images: torch.Tensor, ranges: torch.Tensor) -> dict[str, np.ndar
 
 
 class TorchBackend:
-    """The torch model, in fp32 or under bf16 autocast."""
+    """The torch model in fp32, tf32 (CUDA only) or under bf16 autocast; fp32 on a GPU has TF32 off (exact)."""
 
-    def __init__(self, model: LCPR, *, device: str = "cpu", bf16: bool = False) -> None:
-        self.model, self.device, self.bf16 = model, device, bf16
-        self.name, self.runtime = ("bf16" if bf16 else "fp32"), "torch"
+    def __init__(self, model: LCPR, *, device: str = "cpu", precision: str = "fp32") -> None:
+        from .cuda import CUDA_PRECISIONS
+
+        if precision not in CUDA_PRECISIONS:
+            raise RuntimeSetupError(f"torch precision {precision!r}; accepted: {', '.join(CUDA_PRECISIONS)}")
+        if precision == "tf32" and torch.device(device).type != "cuda":
+            raise RuntimeSetupError(f"model.precision='tf32' needs a CUDA device (model.device={device!r}); "
+                                    "accepted on the CPU: auto, fp32, bf16, onnx, int8")
+        self.model, self.device = model, torch.device(device)
+        self.name, self.runtime = precision, "torch"
 
     def __call__(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:
-        device_type = torch.device(self.device).type
-        with torch.inference_mode(), torch.autocast(device_type, dtype=torch.bfloat16, enabled=self.bf16):
-            desc = self.model(images.to(self.device), ranges.to(self.device))
+        from .cuda import numerics
+
+        with numerics(self.device, self.name):
+            desc = self.model(images.to(self.device, non_blocking=True), ranges.to(self.device, non_blocking=True))
         return desc.float().cpu().numpy()
 
 

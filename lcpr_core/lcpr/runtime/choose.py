@@ -4,7 +4,9 @@
 a few forward passes each, on a fixed probe input) and keeps the fastest whose descriptor has a
 cosine of at least :data:`EXACT_COSINE` to torch fp32. The choice is logged with the CPU model,
 because it differs between machines: bf16 wins on CPUs with AMX or fast bf16 dot products
-(e.g. Zen 4) and loses on others. On a GPU, ``auto`` is torch fp32 without measuring.
+(e.g. Zen 4) and loses on others. On a GPU, ``auto`` times fp32, tf32 and bf16, each replayed
+from a CUDA graph of the describer's batch (:mod:`.cuda`), and keeps the fastest within
+:data:`~.cuda.GPU_COSINE` of exact fp32, logged with the GPU's name.
 An explicit ``onnx`` or ``int8`` is checked against torch fp32 on the probe before use.
 
 ``config.runtime`` says what runs an exported graph: ``onnxruntime``, ``openvino``, or ``auto``.
@@ -27,6 +29,7 @@ import torch
 from ...errors import RuntimeSetupError
 from ...timing import cpu_model, median_seconds
 from .backends import Backend, OpenVinoBackend, OrtBackend, TorchBackend
+from .cuda import CUDA_PRECISIONS, GPU_COSINE, GraphBackend, gpu_name
 from .onnx_cache import exported_graph, graph_key, onnx_path
 
 if TYPE_CHECKING:
@@ -40,7 +43,7 @@ log = logging.getLogger(__name__)
 EXACT_COSINE = 0.99999  # what "exact" means for auto and for an exported graph
 INT8_COSINE = 0.99  # an int8 graph further than this from fp32 on the probe is refused as broken
 AUTO_CANDIDATES = ("fp32", "bf16", "onnx")
-_chosen: dict[tuple[str, str, int], str] = {}  # (graph key, device, threads) -> what auto chose in this process
+_chosen: dict[tuple[str, str, int], str] = {}  # (graph key, device, threads or batch) -> what auto chose here
 
 
 def probe_inputs(model: LCPR, batch: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
@@ -75,12 +78,15 @@ class Choice:
         return "; ".join(parts)
 
 
-def _build(name: str, config: ModelConfig, model: LCPR) -> Backend:
-    if name in ("fp32", "bf16"):
-        return TorchBackend(model, device=config.device, bf16=name == "bf16")
-    if config.device != "cpu":
+def _build(name: str, config: ModelConfig, model: LCPR, *, batch: int = 1) -> Backend:
+    cuda = torch.device(config.device).type == "cuda"
+    if name in CUDA_PRECISIONS:
+        if cuda and config.cuda_graph:
+            return GraphBackend(model, device=config.device, precision=name, batch=batch)
+        return TorchBackend(model, device=config.device, precision=name)
+    if torch.device(config.device).type != "cpu":
         raise RuntimeSetupError(f"model.precision={name!r} runs on the CPU only; with model.device="
-                                f"{config.device!r} accepted: auto, fp32, bf16")
+                                f"{config.device!r} accepted: auto, fp32, tf32, bf16")
     if name == "onnx":
         return _graph_backend(exported_graph(config, model), config, name)
     if name == "int8":
@@ -101,13 +107,16 @@ def _graph_backend(path: Path, config: ModelConfig, name: str) -> Backend:
     return OrtBackend(path, threads=config.threads, name=name)
 
 
-def choose_backend(config: ModelConfig, model: LCPR, *, repeats: int = 3) -> Choice:
-    """The backend ``config.precision`` asks for (``auto``: measured here, see the module doc)."""
+def choose_backend(config: ModelConfig, model: LCPR, *, batch: int = 1, repeats: int = 3) -> Choice:
+    """The backend ``config.precision`` asks for (``auto``: measured here, see the module doc).
+
+    ``batch``: the rows one frame makes (1, or 6 with turn averaging): what a GPU path captures.
+    """
     reference = TorchBackend(model, device=config.device)
-    if config.precision == "auto" and torch.device(config.device).type != "cpu":
-        return Choice(reference)
+    if config.precision == "auto" and torch.device(config.device).type == "cuda":
+        return _choose_cuda(config, model, reference, batch=batch)
     if config.precision not in ("auto", "onnx", "int8"):  # torch itself: nothing to check, no probe pass
-        return Choice(_build(config.precision, config, model))
+        return Choice(_build(config.precision, config, model, batch=batch))
     images, ranges = probe_inputs(model)
     expected = reference(images, ranges)
     if config.precision != "auto":
@@ -143,6 +152,33 @@ def choose_backend(config: ModelConfig, model: LCPR, *, repeats: int = 3) -> Cho
             best, choice.backend = name, backend
     _chosen[memo] = best or "fp32"
     log.info("LCPR: precision auto chose %s on %s (%d threads): %s", best, cpu_model(), torch.get_num_threads(),
+             choice.summary())
+    return choice
+
+
+def _choose_cuda(config: ModelConfig, model: LCPR, reference: TorchBackend, *, batch: int,
+                 repeats: int = 20) -> Choice:
+    """auto on a GPU: the fastest of fp32, tf32 and bf16 (CUDA graphs of ``batch``) within GPU_COSINE of fp32."""
+    memo = (graph_key(config), config.device, batch)
+    if memo in _chosen:
+        return Choice(_build(_chosen[memo], config, model, batch=batch))
+    images, ranges = probe_inputs(model, batch=batch)
+    images, ranges = images.to(config.device), ranges.to(config.device)
+    expected = reference(images, ranges)
+    choice = Choice(reference)
+    best = None
+    for name in CUDA_PRECISIONS:
+        try:
+            backend = _build(name, config, model, batch=batch)
+            choice.cosines[name] = cosine(backend(images, ranges), expected)
+            choice.ms[name] = 1000 * median_seconds(partial(backend, images, ranges), repeats=repeats, warmup=2)
+        except (RuntimeSetupError, RuntimeError) as err:  # out of memory included
+            choice.failed[name] = str(err)
+            continue
+        if choice.cosines[name] >= GPU_COSINE and (best is None or choice.ms[name] < choice.ms[best]):
+            best, choice.backend = name, backend
+    _chosen[memo] = best or "fp32"
+    log.info("LCPR: precision auto chose %s on %s (batch %d): %s", best, gpu_name(config.device), batch,
              choice.summary())
     return choice
 

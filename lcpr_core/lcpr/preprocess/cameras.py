@@ -1,0 +1,220 @@
+"""A frame's camera images -> the N x 3 x H x W tensor LCPR reads, on the device the network runs on.
+
+Three decoders (``ModelConfig.decode``):
+
+- ``pil``: the released pipeline (PIL decode, PIL bilinear resize): :func:`.camera.camera_tensor`.
+- ``turbo``: JPEGs decoded at a reduced size by libjpeg-turbo (:mod:`.decode`), two images at a
+  time (the decoder releases the GIL), then resized together by torch's antialiased bilinear
+  filter (the filter PIL's bilinear resize applies) on uint8 pixels and normalised in one pass.
+- ``nvjpeg``: on a CUDA device, JPEGs uploaded as bytes and decoded by nvJPEG
+  (``torchvision.io.decode_jpeg(..., device="cuda")``, all six in one batch), resized and
+  normalised there; the pixels never come back to the CPU.
+- ``auto``: nvjpeg where the network runs on CUDA and torchvision's GPU decoder imports, else turbo.
+
+Raw arrays (already decoded ``Image`` messages) skip the decoder and are uploaded as uint8.
+A camera whose image cannot be used (corrupt or truncated bytes, a bad array) leaves its slot
+zero, as a missing camera does; :meth:`CameraPreprocessor.__call__` says which and why.
+"""
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ...errors import InputShapeError, InvalidValueError, LcprError
+from .camera import IMAGENET_MEAN, IMAGENET_STD, CameraInput, camera_tensor
+from .decode import is_jpeg, jpeg_size, rgb_array
+
+log = logging.getLogger(__name__)
+
+DECODERS = ("auto", "pil", "turbo", "nvjpeg")
+_POOL: ThreadPoolExecutor | None = None
+
+
+def _pool() -> ThreadPoolExecutor:
+    global _POOL
+    if _POOL is None:
+        _POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix="lcpr-decode")
+    return _POOL
+
+
+def nvjpeg_decoder() -> tuple[Callable[..., Any] | None, str]:
+    """torchvision's GPU JPEG decoder, or None and why it cannot be used here."""
+    try:
+        from torchvision.io import ImageReadMode, decode_jpeg  # type: ignore[import-not-found, unused-ignore]
+    except Exception as err:  # torchvision absent, or built for another torch ('operator ... does not exist')
+        return None, f"torchvision.io.decode_jpeg does not import ({type(err).__name__}: {err})"
+
+    def decode(data: list[torch.Tensor], device: torch.device) -> list[torch.Tensor]:
+        return list(decode_jpeg(data, mode=ImageReadMode.RGB, device=device))
+
+    return decode, ""
+
+
+def resolve_decoder(decoder: str, device: str) -> str:
+    """What ``decoder`` means on ``device``: ``auto`` -> nvjpeg on CUDA where it imports, else turbo."""
+    if decoder not in DECODERS:
+        raise InvalidValueError(f"decode={decoder!r}; accepted: {', '.join(DECODERS)}")
+    cuda = torch.device(device).type == "cuda"
+    if decoder == "nvjpeg" and not cuda:
+        raise InvalidValueError(f"decode='nvjpeg' needs model.device cuda (got {device!r}); accepted on the CPU: "
+                                "auto, pil, turbo")
+    if decoder != "auto":
+        return decoder
+    if cuda and nvjpeg_decoder()[0] is not None:
+        return "nvjpeg"
+    return "turbo"
+
+
+def _stack(pixels: list[torch.Tensor]) -> torch.Tensor:
+    """3 x h x w images of one size -> B x 3 x h x w; CPU views of h x w x 3 arrays stay channels-last."""
+    if pixels[0].device.type == "cpu" and pixels[0].stride()[0] == 1:
+        return torch.from_numpy(np.stack([p.permute(1, 2, 0).numpy() for p in pixels])).permute(0, 3, 1, 2)
+    return torch.stack(pixels)
+
+
+class CameraPreprocessor:
+    """N camera images -> (N x 3 x H x W float32 on ``device``, {slot: why its image was left out})."""
+
+    def __init__(self, *, size: tuple[int, int], device: str = "cpu", decoder: str = "auto",
+                 draft: bool = False) -> None:
+        self.size = (int(size[0]), int(size[1]))
+        self.device = torch.device(device)
+        self.decoder = resolve_decoder(decoder, device)
+        self.draft = draft  # PIL draft mode, for decoder 'pil' only (ModelConfig.fast_decode)
+        self._nvjpeg: Callable[..., Any] | None = None
+        if self.decoder == "nvjpeg":
+            self._nvjpeg, why = nvjpeg_decoder()
+            if self._nvjpeg is None:
+                raise InvalidValueError(f"decode='nvjpeg': {why}; accepted: auto, turbo, pil")
+        std = torch.tensor(IMAGENET_STD, dtype=torch.float32)
+        mean = torch.tensor(IMAGENET_MEAN, dtype=torch.float32)
+        # (x / 255 - mean) / std as one multiply-add: x * scale + bias
+        self._scale = (1.0 / (255.0 * std)).view(1, 3, 1, 1).to(self.device)
+        self._bias = (-mean / std).view(1, 3, 1, 1).to(self.device)
+        #: images nvJPEG refused and the CPU decoded instead (counted, warned once)
+        self.nvjpeg_fallbacks = 0
+
+    def __call__(self, images: Sequence[CameraInput | None], *, strict: bool = False
+                 ) -> tuple[torch.Tensor, dict[int, str]]:
+        """``strict``: raise on the first unusable image instead of leaving its slot zero."""
+        if not images:
+            raise InputShapeError("no camera images given; expected one per camera (6 for nuScenes)")
+        if self.decoder == "pil":
+            return self._pil(images, strict=strict)
+        pixels, failed = self.decode(images)
+        if failed and strict:
+            k = min(failed)
+            raise InputShapeError(f"camera {k}: {failed[k]}")
+        return self.assemble(pixels, len(images)), failed
+
+    def decode(self, images: Sequence[CameraInput | None]) -> tuple[dict[int, torch.Tensor], dict[int, str]]:
+        """The decoding stage: slot -> 3 x h x w uint8 pixels (on the GPU after nvJPEG, else CPU views of
+        h x w x 3 arrays), and slot -> why an image could not be used."""
+        failed: dict[int, str] = {}
+        pixels: dict[int, torch.Tensor] = {}
+        if self.decoder == "nvjpeg":
+            cpu_slots = self._decode_on_device(images, pixels, failed)
+        else:
+            cpu_slots = [k for k, img in enumerate(images) if img is not None]
+        arrays = _pool().map(lambda k: self._rgb(images[k]), cpu_slots) if len(cpu_slots) > 1 else \
+            (self._rgb(images[k]) for k in cpu_slots)  # cpu_slots hold no None
+        for k, arr in zip(cpu_slots, arrays, strict=True):
+            if isinstance(arr, InputShapeError):
+                failed[k] = str(arr)
+            else:
+                pixels[k] = torch.from_numpy(arr).permute(2, 0, 1)  # a channels-last view, no copy
+        return pixels, failed
+
+    def assemble(self, pixels: dict[int, torch.Tensor], count: int) -> torch.Tensor:
+        """The resize-and-normalise stage: decoded slots -> ``count`` x 3 x H x W on the device, absent slots 0."""
+        groups: dict[tuple[Any, ...], list[int]] = {}  # one resize per image size and place
+        for k in sorted(pixels):
+            groups.setdefault((pixels[k].device, *pixels[k].shape), []).append(k)
+        if len(groups) == 1 and len(pixels) == count:  # the usual frame: every camera, one size
+            return self._resize_normalise(_stack([pixels[k] for k in range(count)]))
+        out = torch.zeros(count, 3, *self.size, device=self.device)
+        for slots in groups.values():
+            out[slots] = self._resize_normalise(_stack([pixels[k] for k in slots]))
+        return out
+
+    def _rgb(self, image: CameraInput | None) -> np.ndarray | InputShapeError:
+        if image is None:
+            return InputShapeError("no image")
+        try:
+            return rgb_array(image, self.size)
+        except InputShapeError as err:
+            return err
+
+    def _resize_normalise(self, batch: torch.Tensor) -> torch.Tensor:
+        """B x 3 x h x w uint8 -> B x 3 x H x W float32 on the device: antialiased bilinear (PIL's filter),
+        ImageNet statistics."""
+        if batch.device != self.device:  # decoded on the CPU for a GPU: upload the uint8 pixels, resize there
+            batch = batch.contiguous().to(self.device, non_blocking=True)
+        if batch.device.type == "cpu":
+            if tuple(batch.shape[-2:]) != self.size:  # torch's fast uint8 path, rounded to uint8 as PIL's resize
+                batch = F.interpolate(batch.contiguous(memory_format=torch.channels_last), size=self.size,
+                                      mode="bilinear", antialias=True, align_corners=False)
+            batch = batch.contiguous()
+        elif tuple(batch.shape[-2:]) != self.size:
+            batch = F.interpolate(batch.float(), size=self.size, mode="bilinear", antialias=True,
+                                  align_corners=False).round_().clamp_(0, 255)
+        return batch.float().mul_(self._scale).add_(self._bias)
+
+    def _decode_on_device(self, images: Sequence[CameraInput | None], pixels: dict[int, torch.Tensor],
+                          failed: dict[int, str]) -> list[int]:
+        """nvJPEG for the JPEG slots (all in one call); returns the slots left for the CPU decoder."""
+        assert self._nvjpeg is not None
+        jpegs, cpu = [], []
+        for k, img in enumerate(images):
+            if img is None:
+                continue
+            if isinstance(img, (bytes, bytearray, memoryview)) and is_jpeg(img):
+                try:
+                    jpeg_size(img)  # refuses truncated files, as the CPU decoders do
+                except InputShapeError as err:
+                    failed[k] = str(err)
+                    continue
+                jpegs.append(k)
+            else:
+                cpu.append(k)
+        if not jpegs:
+            return cpu
+        data = [torch.frombuffer(bytearray(images[k]), dtype=torch.uint8) for k in jpegs]  # type: ignore[arg-type]
+        try:
+            decoded = self._nvjpeg(data, self.device)
+        except RuntimeError:
+            decoded = []
+            for k, d in zip(jpegs, data, strict=True):  # one by one: which camera's bytes were refused
+                try:
+                    decoded.extend(self._nvjpeg([d], self.device))
+                except RuntimeError as err:  # the CPU decoder then says whether the bytes are bad
+                    self.nvjpeg_fallbacks += 1
+                    if self.nvjpeg_fallbacks in (1, 10, 100, 1000):
+                        log.warning("LCPR: nvJPEG refused camera %d's image (%s); decoded on the CPU instead "
+                                    "(%d image(s) so far)", k, str(err).splitlines()[0], self.nvjpeg_fallbacks)
+                    cpu.append(k)
+                    decoded.append(None)
+        for k, img in zip(jpegs, decoded, strict=True):
+            if img is not None:
+                pixels[k] = img
+        return cpu
+
+    def _pil(self, images: Sequence[CameraInput | None], *, strict: bool) -> tuple[torch.Tensor, dict[int, str]]:
+        failed: dict[int, str] = {}
+        out = torch.zeros(len(images), 3, *self.size)
+        for k, img in enumerate(images):
+            if img is None:
+                continue
+            try:
+                out[k] = camera_tensor(img, size=self.size, fast_decode=self.draft)
+            except LcprError as err:
+                if strict:
+                    raise InputShapeError(f"camera {k}: {err}") from err
+                failed[k] = str(err)
+        return out.to(self.device), failed

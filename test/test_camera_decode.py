@@ -1,0 +1,154 @@
+"""The fast camera path (reduced-size libjpeg-turbo decode, antialiased resize) keeps the released descriptor,
+refuses bad images per camera, and the range image has one torch twin for the GPU."""
+from __future__ import annotations
+
+import dataclasses
+import io
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from lcpr_core import Describer, InputShapeError, ModelConfig, cameras_tensor, range_image
+from lcpr_core.errors import DeviceError, InvalidValueError, RuntimeSetupError
+from lcpr_core.lcpr.preprocess import PRESETS
+from lcpr_core.lcpr.preprocess.cameras import CameraPreprocessor, resolve_decoder
+from lcpr_core.lcpr.preprocess.dataset_files import find_nuscenes_keyframe
+from lcpr_core.lcpr.preprocess.decode import jpeg_size, reduction
+from lcpr_core.lcpr.preprocess.range_image import range_image_tensor
+from lcpr_core.lcpr.runtime.cuda import float32_math
+from lcpr_core.pretrained import default_weights
+
+SMALL: dict[str, Any] = dict(width=0.25, image_size=(64, 192), range_size=(16, 264), precision="fp32")
+
+
+def jpeg(h: int = 900, w: int = 1600, seed: int = 0) -> bytes:
+    rng = np.random.default_rng(seed)
+    coarse = rng.integers(0, 256, size=(h // 50 + 1, w // 50 + 1, 3), dtype=np.uint8)
+    image = np.kron(coarse, np.ones((50, 50, 1), np.uint8))[:h, :w]
+    buf = io.BytesIO()
+    Image.fromarray(image).save(buf, format="JPEG", quality=90)
+    return buf.getvalue()
+
+
+@pytest.fixture(scope="module")
+def keyframes(shared: Path) -> list[tuple[list[bytes], np.ndarray]]:
+    return [find_nuscenes_keyframe(shared / "data" / name).read() for name in ("nuscenes_sample", "nuscenes_sample2")]
+
+
+@pytest.fixture(scope="module")
+def bundled() -> Describer:
+    weights = default_weights()
+    assert weights is not None, "the bundled weights are part of the package"
+    return Describer(ModelConfig(weights=str(weights), precision="fp32", decode="turbo"))
+
+
+def test_the_fast_decoder_keeps_the_bundled_descriptor_within_cosine_0_9999_on_both_real_keyframes(
+        keyframes, bundled):
+    reference = Describer(dataclasses.replace(bundled.config, decode="pil"), model=bundled.model)
+    for images, points in keyframes:
+        fast, slow = bundled.describe(images, points), reference.describe(images, points)
+        assert float(np.dot(fast, slow)) >= 0.9999
+
+
+def test_the_fast_decoder_keeps_the_released_size_input_close_to_the_pil_pixels(keyframes):
+    images, _ = keyframes[0]
+    fast, failed = CameraPreprocessor(size=(256, 704), decoder="turbo")(images)
+    reference = cameras_tensor(images, size=(256, 704))
+    assert not failed and fast.shape == reference.shape == (6, 3, 256, 704)
+    assert float((fast - reference).abs().mean()) < 0.02  # normalised units: about 1 grey level
+
+
+def test_the_decoder_reduces_as_far_as_the_target_size_allows():
+    assert reduction(900, 1600, (256, 704)) == 2
+    assert reduction(900, 1600, (64, 192)) == 8
+    assert reduction(900, 1600, (900, 1600)) == 1
+    assert reduction(360, 640, (256, 704)) == 1
+
+
+def test_the_jpeg_header_gives_the_size_and_a_cut_file_is_refused_as_truncated():
+    data = jpeg(90, 160)
+    assert jpeg_size(data) == (90, 160)
+    with pytest.raises(InputShapeError, match="truncated"):
+        jpeg_size(data[: len(data) // 2])
+    with pytest.raises(InputShapeError, match="not a JPEG"):
+        jpeg_size(b"GIF89a....")
+
+
+@pytest.mark.parametrize("decoder", ["turbo", "pil"])
+def test_an_unusable_camera_image_leaves_its_slot_empty_and_says_which_and_why(decoder: str):
+    good = jpeg(90, 160)
+    cams = CameraPreprocessor(size=(32, 64), decoder=decoder)
+    out, failed = cams([good, good[:300], b"\xff\xd8\xffgarbage\xff\xd9", None, np.zeros((4, 4), np.uint8)])
+    assert sorted(failed) == [1, 2, 4]
+    assert "truncated" in failed[1] or "truncated" in failed[1].lower()
+    assert out.shape == (5, 3, 32, 64)
+    assert out[0].abs().sum() > 0 and all(out[k].abs().sum() == 0 for k in (1, 2, 3, 4))
+    with pytest.raises(InputShapeError, match="camera 1"):
+        cams([good, good[:300]], strict=True)
+
+
+def test_images_of_different_sizes_in_one_frame_are_each_resized():
+    cams = CameraPreprocessor(size=(32, 64), decoder="turbo")
+    out, failed = cams([jpeg(90, 160), jpeg(120, 200, seed=1), np.full((40, 70, 3), 7, np.uint8)])
+    assert not failed and out.shape == (3, 3, 32, 64)
+    reference = cameras_tensor([jpeg(90, 160), jpeg(120, 200, seed=1), np.full((40, 70, 3), 7, np.uint8)],
+                               size=(32, 64))
+    assert float((out - reference).abs().mean(dim=(1, 2, 3)).max()) < 0.05  # each slot: its own image
+
+
+def test_the_detector_path_counts_a_corrupt_camera_as_missing_and_still_describes_the_frame():
+    from lcpr_core.detector import DetectorConfig, Frame, LoopDetector
+
+    det = LoopDetector(DetectorConfig(model=ModelConfig(**SMALL, seed=0)))
+    points = np.random.default_rng(0).uniform(-30, 30, size=(2000, 3)).astype(np.float32)
+    good = jpeg(90, 160)
+    result = det.process(Frame(stamp=0.0, images=[good, good[:200], good, good, good, good], points=points))
+    assert result.keyframe_id == 0 and result.missing_cameras == (1,)
+    assert "truncated" in result.camera_errors[1]
+
+
+def test_decoder_names_are_checked_and_nvjpeg_needs_a_gpu():
+    with pytest.raises(InvalidValueError, match="accepted: auto, pil, turbo, nvjpeg"):
+        ModelConfig(decode="fast")
+    with pytest.raises(InvalidValueError, match="needs model.device cuda"):
+        resolve_decoder("nvjpeg", "cpu")
+    assert resolve_decoder("auto", "cpu") == "turbo"
+
+
+def test_the_torch_range_image_equals_the_numpy_one_on_the_real_sweeps(keyframes):
+    for _, points in keyframes:
+        for name in ("nuscenes_lidar_top", "kitti_hdl64e"):
+            expected = range_image(points, preset=name)
+            got = range_image_tensor(torch.from_numpy(points), preset=PRESETS[name]).numpy()
+            assert got.dtype == np.float32 and np.array_equal(got, expected)
+
+
+def test_tf32_is_refused_on_the_cpu_naming_what_runs_there():
+    with pytest.raises(RuntimeSetupError, match="tf32.*needs a CUDA device.*accepted on the CPU"):
+        Describer(ModelConfig(**{**SMALL, "precision": "tf32"}))
+
+
+def test_the_float32_switches_are_restored_after_a_pass():
+    conv: Any = torch.backends.cudnn.conv  # type: ignore[attr-defined]
+    before = conv.fp32_precision, torch.backends.cuda.matmul.fp32_precision
+    with float32_math(tf32=False):
+        assert conv.fp32_precision == "ieee"
+    with float32_math(tf32=True):
+        assert conv.fp32_precision == "tf32"
+    assert (conv.fp32_precision, torch.backends.cuda.matmul.fp32_precision) == before
+
+
+def test_a_device_out_of_memory_is_a_skipped_frame_not_a_crash(monkeypatch):
+    describer = Describer(ModelConfig(**SMALL))
+    images, ranges = describer.inputs([jpeg(90, 160)] * 6, np.zeros((10, 3), np.float32))
+
+    def out_of_memory(*_: object) -> np.ndarray:
+        raise torch.cuda.OutOfMemoryError("CUDA out of memory. Tried to allocate 2.00 GiB")
+
+    monkeypatch.setattr(describer, "backend", out_of_memory)
+    with pytest.raises(DeviceError, match="ran out of memory describing 1 frame"):
+        describer.describe_tensors(images, ranges)
