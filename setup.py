@@ -44,6 +44,9 @@ setup(
         "ros": ["ros-jazzy-rclpy[fastrtps]==7.1.6", "ros-jazzy-common-interfaces==5.3.6", "ros-jazzy-std-srvs==5.3.6"],
         # The pose-graph proof in lcpr_eval and the demo (optional: verification itself does not need it).
         "posegraph": ["gtsam>=4.2"],
+        # nvJPEG decoding on a GPU (model.decode auto / nvjpeg): the torchvision built for the user's CUDA torch;
+        # imported only with model.device cuda (PyPI's CPU torchvision does not import beside the CPU torch pin).
+        "gpu": ["torchvision>=0.19"],
         # The registration comparison in benchmarks/registration_compare.py.
         "compare": ["kiss-icp>=1.0"],
         # Tests, and the linter and type checker CI runs before them (pinned: a new release may

@@ -23,9 +23,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import statistics
 import sys
-import time
 from collections.abc import Callable
 from functools import partial
 from pathlib import Path
@@ -38,7 +36,7 @@ from lcpr_core import Describer, ModelConfig
 from lcpr_core.lcpr.preprocess.dataset_files import find_nuscenes_keyframe
 from lcpr_core.lcpr.turn_average import average_turns, turned_batch
 from lcpr_core.pretrained import default_weights
-from lcpr_core.timing import cpu_model
+from lcpr_core.timing import cpu_model, median_seconds
 from msg_tools.shared_data import shared_path
 
 NETWORKS = ("released", "bundled")
@@ -51,14 +49,7 @@ def median_ms(fn: Callable[[], object], *, device: torch.device, repeats: int, w
         if device.type == "cuda":
             torch.cuda.synchronize(device)
 
-    for _ in range(warmup):
-        run()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        run()
-        times.append(time.perf_counter() - start)
-    return 1000 * statistics.median(times)
+    return 1000 * median_seconds(run, repeats=repeats, warmup=warmup)
 
 
 def network_config(network: str, device: str) -> ModelConfig:
