@@ -10,7 +10,7 @@ import pytest
 
 from lcpr_core.descriptor_map import SCHEMA_VERSION, DescriptorMap, MapConfig, Match
 from lcpr_core.errors import MapError, VerificationError
-from lcpr_core.lcpr.describer import Describer
+from lcpr_core.lcpr.describer import Describer, Prepared
 from lcpr_core.lcpr.detector import DetectorConfig, Frame, LoopDetector, MatchConfig
 from lcpr_core.verification import REJECT_REASONS, CloudConfig, CloudStore, VerifierConfig, compact_cloud
 from test_verification import pose, pose_error, scene, view
@@ -219,6 +219,9 @@ class KeyedDescriber:
 
     def inputs(self, images, points):
         return list(images), None
+
+    def prepare(self, images, points):
+        return Prepared(*self.inputs(images, points))
 
     def describe_tensors(self, images, ranges):
         return self.table[images[0]][None]

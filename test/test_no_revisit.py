@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from lcpr_core.lcpr.describer import Describer
+from lcpr_core.lcpr.describer import Describer, Prepared
 from lcpr_core.lcpr.detector import DetectorConfig, Frame, LoopDetector, MatchConfig
 
 
@@ -21,6 +21,9 @@ class AnyPlace:
 
     def inputs(self, images, points):
         return torch.zeros(1), torch.zeros(1)
+
+    def prepare(self, images, points):
+        return Prepared(*self.inputs(images, points))
 
     def describe_tensors(self, images, ranges):
         v = self.rng.normal(size=256).astype(np.float32)
