@@ -205,3 +205,21 @@ def test_frames_processed_in_batches_give_the_results_of_one_frame_at_a_time():
     assert [[(c.match_id, c.distance) for c in r.candidates] for r in one] == \
         [[(c.match_id, c.distance) for c in r.candidates] for r in many]
     assert sum(r.loop is not None for r in many) == 10
+
+
+def test_a_prefetched_iterator_keeps_the_order_raises_the_source_error_and_stops_early():
+    from lcpr_core.lcpr.evaluate import Prefetched
+
+    assert list(Prefetched(iter(range(100)), depth=3)) == list(range(100))
+
+    def broken():
+        yield 1
+        raise ValueError("bad bag record")
+
+    items = Prefetched(broken(), depth=2)
+    assert next(items) == 1
+    with pytest.raises(ValueError, match="bad bag record"):
+        next(items)
+    endless = Prefetched(iter(int, 1), depth=2)  # never ends: close() must still return
+    assert next(endless) == 0
+    endless.close()

@@ -23,11 +23,14 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import queue
+import threading
 import time
 from collections import Counter
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Generic, TypeVar, cast
 
 import numpy as np
 
@@ -129,6 +132,63 @@ class _RunRecord:
         return np.asarray(self.poses, np.float64).reshape(-1, 4, 4)[:, :3, 3]
 
 
+T = TypeVar("T")
+
+
+class Prefetched(Generic[T]):
+    """An iterator read ahead by a thread, ``depth`` items at most: reading a bag (sqlite, CDR, numpy; much
+    of it outside the GIL) overlaps describing the frames before. Order and items are the iterator's own;
+    its exception is raised where the item would have been."""
+
+    _END = object()
+
+    def __init__(self, source: Iterator[T], *, depth: int = 8) -> None:
+        self._queue: queue.Queue[object] = queue.Queue(maxsize=max(1, depth))
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._fill, args=(source,), name="lcpr-prefetch", daemon=True)
+        self._thread.start()
+
+    def _fill(self, source: Iterator[T]) -> None:
+        try:
+            for item in source:
+                while not self._stop.is_set():
+                    try:
+                        self._queue.put(item, timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if self._stop.is_set():
+                    return
+            self._put_end(self._END)
+        except Exception as err:  # noqa: BLE001 - handed to the consumer, raised there
+            self._put_end(err)
+
+    def _put_end(self, marker: object) -> None:
+        while not self._stop.is_set():
+            try:
+                self._queue.put(marker, timeout=0.1)
+                return
+            except queue.Full:
+                continue
+
+    def __iter__(self) -> Prefetched[T]:
+        return self
+
+    def __next__(self) -> T:
+        item = self._queue.get()
+        if item is self._END:
+            self._queue.put(item)  # stays at the end for a later call
+            raise StopIteration
+        if isinstance(item, Exception):
+            raise item
+        return cast(T, item)
+
+    def close(self) -> None:
+        """Stop reading ahead and wait for the thread (the source can then be closed)."""
+        self._stop.set()
+        self._thread.join()
+
+
 def to_detector_frame(frame: SensorFrame) -> Frame:
     """A bag frame as the detector takes it: encoded or RGB images (None = missing), N x 3 points, pose."""
     images = [None if c is None else (c.jpeg if c.jpeg is not None else c.rgb) for c in frame.cameras]
@@ -160,8 +220,9 @@ def evaluate_bag(
     bar = progress_bar(total, desc="lcpr_eval", unit="frame", enabled=progress)
     batch = opts.batch
     pending: list[SensorFrame] = []
+    frames = Prefetched(stream, depth=2 * batch + 4)  # the bag is read while the detector works
     try:
-        for frame in stream:
+        for frame in frames:
             if opts.limit and record.frames + len(pending) >= opts.limit:
                 break
             pending.append(frame)
@@ -174,6 +235,7 @@ def evaluate_bag(
             _steps(pending, record)
             bar.update(len(pending))
     finally:
+        frames.close()
         stream.close()
         bar.close()
     stats = dataclasses.asdict(stream.stats)
