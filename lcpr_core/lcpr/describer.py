@@ -209,6 +209,9 @@ class Describer:
                     f"num_cameras={self.config.num_cameras} (set model.turn_average: false)")
             log.info("LCPR: descriptors averaged over %d camera-slot turns as %s asks", TURNS, self.config.weights)
         #: camera images -> the network's input tensor, on the network's device
+        if self.config.fast_decode and self.config.decode != "pil":
+            log.warning("LCPR: model.fast_decode (PIL draft mode) applies to model.decode 'pil' only; decode %r "
+                        "already decodes at a reduced size", self.config.decode)
         self.cameras = CameraPreprocessor(size=self.config.image_size, device=self.config.device,
                                           decoder=self.config.decode, draft=self.config.fast_decode)
         # a frame is one network pass, or one batch of the six turns: what a GPU path captures

@@ -151,25 +151,21 @@ class Prefetched(Generic[T]):
     def _fill(self, source: Iterator[T]) -> None:
         try:
             for item in source:
-                while not self._stop.is_set():
-                    try:
-                        self._queue.put(item, timeout=0.1)
-                        break
-                    except queue.Full:
-                        continue
-                if self._stop.is_set():
+                if not self._offer(item):
                     return
-            self._put_end(self._END)
+            self._offer(self._END)
         except Exception as err:  # noqa: BLE001 - handed to the consumer, raised there
-            self._put_end(err)
+            self._offer(err)
 
-    def _put_end(self, marker: object) -> None:
+    def _offer(self, item: object) -> bool:
+        """Queue ``item``, waiting for room; False when closed first."""
         while not self._stop.is_set():
             try:
-                self._queue.put(marker, timeout=0.1)
-                return
+                self._queue.put(item, timeout=0.1)
+                return True
             except queue.Full:
                 continue
+        return False
 
     def __iter__(self) -> Prefetched[T]:
         return self
