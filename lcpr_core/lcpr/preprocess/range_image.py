@@ -130,27 +130,25 @@ def range_image_tensor(points: torch.Tensor, *, preset: LidarPreset) -> torch.Te
     """:func:`range_image` in torch, on the points' device (a GPU keeps the cloud where the network runs).
 
     N x (>=3) points -> height x width float32; the same arithmetic in float64, the nearest point
-    per pixel by a scatter-min. Equal to :func:`range_image` except where a libm and the device's
-    arctan / arcsin differ in the last bit at a pixel border.
+    per pixel by a scatter-min. No point is selected by a mask (which would wait for the device to
+    count them): dropped points go to a spare pixel instead. Equal to :func:`range_image` except where
+    a libm and the device's arctan / arcsin differ in the last bit at a pixel border.
     """
     if points.dim() != 2 or points.shape[1] < 3:
         raise InputShapeError(f"points have shape {tuple(points.shape)}; expected N x 3 or more columns")
     _check_config(preset)
-    xyz = points[:, :3].to(torch.float64)
-    xyz = xyz[torch.isfinite(xyz.sum(dim=1))]
-    ego = (xyz[:, 0].abs() < preset.min_xy) & (xyz[:, 1].abs() < preset.min_xy)
-    xyz = xyz[~ego]
+    x, y, z = (points[:, k].to(torch.float64) for k in range(3))
+    keep = torch.isfinite(x + y + z) & ~((x.abs() < preset.min_xy) & (y.abs() < preset.min_xy))
     if preset.yaw_offset_deg != 0:
         c, s = _turn(preset.yaw_offset_deg)
-        x, y = xyz[:, 0], xyz[:, 1]
-        xyz = torch.stack([c * x - s * y, s * x + c * y, xyz[:, 2]], dim=1)
-    rng = xyz.square().sum(dim=1).sqrt()
-    keep = (rng > 0) & (rng < preset.max_range)
-    xyz, rng = xyz[keep], rng[keep]
-    pixel = _pixels(torch.atan2(xyz[:, 1], xyz[:, 0]), torch.asin(xyz[:, 2] / rng), preset, torch)
-    image = torch.full((preset.height * preset.width,), float("inf"), dtype=torch.float64, device=points.device)
-    image.scatter_reduce_(0, pixel, rng, reduce="amin")
-    image = image.masked_fill_(torch.isinf(image), NO_RETURN)
+        x, y = c * x - s * y, s * x + c * y
+    rng = torch.sqrt(x * x + y * y + z * z)
+    keep &= (rng > 0) & (rng < preset.max_range)
+    spare = preset.height * preset.width  # where dropped points land
+    pixel = _pixels(torch.atan2(y, x), torch.asin(z / rng), preset, torch, valid=keep, spare=spare)
+    image = torch.full((spare + 1,), float("inf"), dtype=torch.float64, device=points.device)
+    image.scatter_reduce_(0, pixel, torch.where(keep, rng, torch.inf), reduce="amin")
+    image = image[:spare].masked_fill_(torch.isinf(image[:spare]), NO_RETURN)
     return image.to(torch.float32).view(preset.height, preset.width)
 
 
@@ -163,14 +161,19 @@ def _turn(angle_deg: float) -> tuple[float, float]:
     return c, s
 
 
-def _pixels(azimuth: Any, elevation: Any, cfg: LidarPreset, xp: Any) -> Any:
-    """Flat pixel index of each point from its azimuth and elevation (numpy or torch arrays, ``xp`` says which)."""
+def _pixels(azimuth: Any, elevation: Any, cfg: LidarPreset, xp: Any, *, valid: Any = None, spare: int = 0) -> Any:
+    """Flat pixel index of each point from its azimuth and elevation (numpy or torch arrays, ``xp`` says which);
+    with ``valid`` (torch), points outside it get index ``spare``."""
     fov_down = abs(np.deg2rad(cfg.fov_down_deg))
     fov = abs(np.deg2rad(cfg.fov_up_deg)) + fov_down
     u = xp.clip(xp.floor(0.5 * (-azimuth / np.pi + 1.0) * cfg.width), 0, cfg.width - 1)
     v = xp.clip(xp.floor((1.0 - (elevation + fov_down) / fov) * cfg.height), 0, cfg.height - 1)
     flat = v * cfg.width + u
-    return flat.astype(np.int64) if xp is np else flat.to(torch.int64)
+    if xp is np:
+        return flat.astype(np.int64)
+    if valid is not None:
+        flat = torch.where(valid, flat, float(spare))
+    return flat.to(torch.int64)
 
 
 def _check_config(cfg: LidarPreset, *, prefix: str = "") -> None:
