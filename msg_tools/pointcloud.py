@@ -48,14 +48,29 @@ def pointcloud2_to_array(msg: Any, *, keep_nonfinite: bool = True, require_xyz: 
         )
     native = native_dtype(stored)
     shape = (height, width)
+    fields: dict[str, Any] = dict(stored.fields or {})
+    dense = row_step == width * point_step and sum(fields[n][0].itemsize for n in names) == point_step
+    if height and width and dense and native == stored:  # already native, no padding: one copy of the buffer
+        out = np.frombuffer(data, dtype=stored, count=height * width).reshape(shape).copy()
+    else:
+        out = _copy_fields(data, stored, native, shape, row_step)
+    if not keep_nonfinite:
+        return out[finite_mask(out)].reshape(-1)
+    return out if height > 1 else out.reshape(-1)
+
+
+def _copy_fields(data: np.ndarray, stored: np.dtype, native: np.dtype, shape: tuple[int, int],
+                 row_step: int) -> np.ndarray:
+    """Field by field into a zeroed native array: byte order converted, padding left zero."""
     out = np.zeros(shape, dtype=native)
+    height, width = shape
+    point_step = stored.itemsize
+    names = stored.names or ()
     if height and width:
         view = np.ndarray(shape, dtype=stored, buffer=data, offset=0, strides=(row_step, point_step))
         for name in names:
             out[name] = view[name]
-    if not keep_nonfinite:
-        return out[finite_mask(out)].reshape(-1)
-    return out if height > 1 else out.reshape(-1)
+    return out
 
 
 def finite_mask(cloud: np.ndarray) -> np.ndarray:

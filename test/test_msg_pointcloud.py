@@ -231,3 +231,18 @@ def test_an_rclpy_point_cloud_converts_both_ways() -> None:
     hand_made.data = np.array([[1.0, 2.0], [3.0, 4.0]], dtype="<f4").tobytes()
     arr = pointcloud2_to_array(hand_made)
     assert arr["x"].tolist() == [1.0, 3.0] and arr["y"].tolist() == [2.0, 4.0]
+
+
+def test_a_dense_native_cloud_is_read_with_one_copy_and_equals_the_field_by_field_read():
+    from msg_tools.pointcloud import _copy_fields
+    from msg_tools.pointfields import fields_to_dtype, read_field_specs
+
+    arr = np.zeros(500, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4")])
+    for k, name in enumerate(("x", "y", "z", "intensity")):
+        arr[name] = np.arange(500) * (k + 1)
+    msg = array_to_pointcloud2(arr, frame_id="l", stamp=0.0)
+    fast = pointcloud2_to_array(msg)
+    stored = fields_to_dtype(read_field_specs(msg.fields), point_step=int(msg.point_step), is_bigendian=False)
+    slow = _copy_fields(np.frombuffer(bytes(msg.data), np.uint8), stored, stored, (1, 500), int(msg.row_step))
+    assert np.array_equal(fast, slow.reshape(-1)) and np.array_equal(fast, arr)
+    assert not np.shares_memory(fast, np.asarray(msg.data))  # a copy: the message's buffer may be reused
