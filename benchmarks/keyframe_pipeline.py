@@ -33,7 +33,9 @@ import numpy as np
 import torch
 
 from lcpr_core import Describer, ModelConfig
+from lcpr_core.lcpr.keyframe_demo import cosine
 from lcpr_core.lcpr.preprocess.dataset_files import find_nuscenes_keyframe
+from lcpr_core.lcpr.runtime.cuda import gpu_name
 from lcpr_core.lcpr.turn_average import average_turns, turned_batch
 from lcpr_core.pretrained import default_weights
 from lcpr_core.timing import cpu_model, median_seconds
@@ -86,10 +88,6 @@ def stages(describer: Describer, images: list[bytes], points: np.ndarray, *, rep
     return timed
 
 
-def cosine(a: np.ndarray, b: np.ndarray) -> float:
-    return float(np.dot(a.astype(np.float64), b) / (np.linalg.norm(a) * np.linalg.norm(b)))
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", type=Path, nargs="+", default=None, help="folders each holding one nuScenes keyframe")
@@ -104,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"CPU: {cpu_model()}, {torch.get_num_threads()} torch threads; torch {torch.__version__}")
     for device in devices:
         if device.startswith("cuda"):
-            print(f"GPU ({device}): {torch.cuda.get_device_name(torch.device(device))}")
+            print(f"GPU ({device}): {gpu_name(device)}")
     results: list[dict[str, Any]] = []
     for network in args.networks:
         reference = Describer(dataclasses.replace(network_config(network, "cpu"), decode="pil", precision="fp32"))
@@ -136,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
         meta = {"cpu": cpu_model(), "threads": torch.get_num_threads(), "torch": torch.__version__,
-                "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
+                "gpu": gpu_name("cuda") if torch.cuda.is_available() else None}
         (args.out / "keyframe_pipeline.json").write_text(json.dumps({"meta": meta, "rows": results}, indent=1))
     return 0
 

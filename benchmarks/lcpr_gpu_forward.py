@@ -18,12 +18,13 @@ import torch
 
 from lcpr_core import LCPR, ModelConfig, build_model
 from lcpr_core.lcpr.runtime.choose import probe_inputs
+from lcpr_core.lcpr.runtime.cuda import gpu_name
 from lcpr_core.lcpr.training.train import autocast
 from lcpr_core.timing import median_seconds
 
 
 def device_name(device: torch.device) -> str:
-    return torch.cuda.get_device_name(device) if device.type == "cuda" else f"CPU ({torch.get_num_threads()} threads)"
+    return gpu_name(device) if device.type == "cuda" else f"CPU ({torch.get_num_threads()} threads)"
 
 
 def median_ms(model: LCPR, batch: int, *, device: torch.device, bf16: bool, repeats: int, warmup: int = 5) -> float:

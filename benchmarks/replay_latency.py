@@ -26,6 +26,7 @@ import torch
 from lcpr_core import ModelConfig
 from lcpr_core.lcpr.detector import DetectorConfig, Frame, LoopDetector, Result
 from lcpr_core.lcpr.evaluate import to_detector_frame
+from lcpr_core.lcpr.runtime.cuda import gpu_name
 from lcpr_core.timing import cpu_model
 from msg_tools.bags import read_frames
 from msg_tools.frames import NUSCENES_TOPICS
@@ -89,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
     worker.stop(drain=True)
     wall = time.perf_counter() - start
 
-    gpu = f", GPU {torch.cuda.get_device_name(torch.device(args.device))}" if args.device.startswith("cuda") else ""
+    gpu = f", GPU {gpu_name(args.device)}" if torch.device(args.device).type == "cuda" else ""
     print(f"CPU {cpu_model()} ({torch.get_num_threads()} torch threads){gpu}; precision {describer.path}, decoder "
           f"{describer.cameras.decoder}, network {describer.config.image_size[0]}x{describer.config.image_size[1]} "
           f"width {describer.config.width:g}{' six turns' if describer.turn_average else ''}")

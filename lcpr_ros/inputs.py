@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from lcpr_core.errors import InputShapeError
-from lcpr_core.lcpr.preprocess.camera import CameraInput, decode_image
+from lcpr_core.lcpr.preprocess.camera import CameraInput
 from msg_tools.compressed import compressed_bytes, sniff_format
 from msg_tools.errors import ImageEncodingError, ImageError, ImageLayoutError
 from msg_tools.image import COLOUR_ENCODINGS, check_layout, image_to_rgb
@@ -71,16 +71,16 @@ def raw_payload(msg: Any) -> Any:
     return msg
 
 
-def camera_input(payload: Any, *, draft_size: tuple[int, int] | None = None) -> CameraInput:
+def camera_input(payload: Any) -> CameraInput:
     """A payload from :func:`compressed_payload` / :func:`raw_payload` -> what the describer reads.
 
     Compressed bytes pass through undecoded: the describer decodes them at the size the network needs
-    (on the GPU with ``decode: nvjpeg``) and reports bytes it cannot decode per camera. With
-    ``draft_size`` they are decoded here by PIL's draft mode instead. Raw images become RGB arrays.
+    (on the GPU with ``decode: nvjpeg``) and reports bytes it cannot decode per camera. Raw images
+    become RGB arrays.
     """
     try:
         if isinstance(payload, bytes):
-            return payload if draft_size is None else decode_image(payload, draft_size=draft_size)
+            return payload
         return image_to_rgb(payload)
     except (InputShapeError, ImageError) as err:
         raise InputRejected(IMAGE_DECODE, str(err)) from err

@@ -13,14 +13,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..errors import CheckpointError, DeviceError, InputShapeError, InvalidValueError
+from ..errors import CheckpointError, DeviceError, InvalidValueError
 from ..fingerprint import tensors_id
 from .checkpoint import init_from_imagenet, load_checkpoint, load_weights
 from .models import LCPR
 from .preprocess import CUSTOM, LidarGeometry, LidarPreset, lidar_preset, range_image
 from .preprocess.camera import CameraInput
 from .preprocess.cameras import DECODERS, CameraPreprocessor
-from .preprocess.range_image import range_image_tensor
+from .preprocess.range_image import points_array, range_image_tensor
 from .runtime import Backend, Choice, choose_backend
 from .turn_average import TURNS, average_turns, turn_average_in, turned_batch
 from .whitening import Whitening, whitening_in
@@ -264,10 +264,7 @@ class Describer:
         preset = self.config.range_preset
         if not self._ranges_on_device:
             return torch.from_numpy(range_image(points, preset=preset))
-        pts = np.asarray(points)
-        if pts.ndim != 2 or pts.shape[1] < 3:
-            raise InputShapeError(f"points have shape {pts.shape}; expected N x 3 or more columns (x, y, z, ...)")
-        xyz = torch.from_numpy(np.ascontiguousarray(pts[:, :3], dtype=np.float32))
+        xyz = torch.from_numpy(np.ascontiguousarray(points_array(points)[:, :3], dtype=np.float32))
         return range_image_tensor(xyz.to(self.config.device, non_blocking=True), preset=preset)
 
     def describe_tensors(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:

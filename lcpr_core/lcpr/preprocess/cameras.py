@@ -122,8 +122,8 @@ class CameraPreprocessor:
             cpu_slots = self._decode_on_device(images, pixels, failed)
         else:
             cpu_slots = [k for k, img in enumerate(images) if img is not None]
-        arrays = _pool().map(lambda k: self._rgb(images[k]), cpu_slots) if len(cpu_slots) > 1 else \
-            (self._rgb(images[k]) for k in cpu_slots)  # cpu_slots hold no None
+        todo = [img for k in cpu_slots if (img := images[k]) is not None]  # cpu_slots name no missing camera
+        arrays = _pool().map(self._rgb, todo) if len(todo) > 1 else map(self._rgb, todo)
         for k, arr in zip(cpu_slots, arrays, strict=True):
             if isinstance(arr, InputShapeError):
                 failed[k] = str(arr)
@@ -143,9 +143,7 @@ class CameraPreprocessor:
             out[slots] = self._resize_normalise(_stack([pixels[k] for k in slots]))
         return out
 
-    def _rgb(self, image: CameraInput | None) -> np.ndarray | InputShapeError:
-        if image is None:
-            return InputShapeError("no image")
+    def _rgb(self, image: CameraInput) -> np.ndarray | InputShapeError:
         try:
             return rgb_array(image, self.size)
         except InputShapeError as err:

@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from ...errors import InputShapeError, InvalidValueError
+from ...points import turn_cos_sin
 
 NO_RETURN = -1.0  # a range-image pixel no point falls in
 
@@ -83,6 +84,14 @@ def lidar_preset(name: str) -> LidarPreset:
         raise InvalidValueError(f"unknown LiDAR preset {name!r}; accepted: {', '.join(sorted(PRESETS))}") from err
 
 
+def points_array(points: np.ndarray) -> np.ndarray:
+    """``points`` as an N x (>=3) array, else :class:`InputShapeError` naming the shape found."""
+    pts = np.asarray(points)
+    if pts.ndim != 2 or pts.shape[1] < 3:
+        raise InputShapeError(f"points have shape {pts.shape}; expected N x 3 or more columns (x, y, z, ...)")
+    return pts
+
+
 def range_image(
     points: np.ndarray,
     *,
@@ -105,15 +114,13 @@ def range_image(
                  fov_down_deg=fov_down_deg, height=height, width=width, max_range=max_range)
     cfg = dataclasses.replace(base, **{k: v for k, v in given.items() if v is not None})
     _check_config(cfg)
-    pts = np.asarray(points)
-    if pts.ndim != 2 or pts.shape[1] < 3:
-        raise InputShapeError(f"points have shape {pts.shape}; expected N x 3 or more columns (x, y, z, ...)")
+    pts = points_array(points)
     # one contiguous float64 array per axis: the arithmetic below reads each column many times
     x, y, z = (pts[:, k].astype(np.float64) for k in range(3))
     keep = np.isfinite(x + y + z) & ~((np.abs(x) < cfg.min_xy) & (np.abs(y) < cfg.min_xy))  # finite, not the ego box
     x, y, z = x[keep], y[keep], z[keep]
     if cfg.yaw_offset_deg != 0:
-        c, s = _turn(cfg.yaw_offset_deg)
+        c, s = turn_cos_sin(cfg.yaw_offset_deg)
         x, y = c * x - s * y, s * x + c * y
     rng = np.sqrt(x * x + y * y + z * z)  # np.linalg.norm's arithmetic, in its order
     keep = (rng > 0) & (rng < cfg.max_range)
@@ -140,7 +147,7 @@ def range_image_tensor(points: torch.Tensor, *, preset: LidarPreset) -> torch.Te
     x, y, z = (points[:, k].to(torch.float64) for k in range(3))
     keep = torch.isfinite(x + y + z) & ~((x.abs() < preset.min_xy) & (y.abs() < preset.min_xy))
     if preset.yaw_offset_deg != 0:
-        c, s = _turn(preset.yaw_offset_deg)
+        c, s = turn_cos_sin(preset.yaw_offset_deg)
         x, y = c * x - s * y, s * x + c * y
     rng = torch.sqrt(x * x + y * y + z * z)
     keep &= (rng > 0) & (rng < preset.max_range)
@@ -150,15 +157,6 @@ def range_image_tensor(points: torch.Tensor, *, preset: LidarPreset) -> torch.Te
     image.scatter_reduce_(0, pixel, torch.where(keep, rng, torch.inf), reduce="amin")
     image = image[:spare].masked_fill_(torch.isinf(image[:spare]), NO_RETURN)
     return image.to(torch.float32).view(preset.height, preset.width)
-
-
-def _turn(angle_deg: float) -> tuple[float, float]:
-    """cos and sin of a turn about z, quarter turns exact (as :func:`lcpr_core.points.rotate_z`)."""
-    t = np.deg2rad(angle_deg)
-    c, s = float(np.cos(t)), float(np.sin(t))
-    if angle_deg % 90 == 0:
-        c, s = float(round(c)), float(round(s))
-    return c, s
 
 
 def _pixels(azimuth: Any, elevation: Any, cfg: LidarPreset, xp: Any, *, valid: Any = None, spare: int = 0) -> Any:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import partial
 from typing import TYPE_CHECKING
@@ -137,23 +138,33 @@ def choose_backend(config: ModelConfig, model: LCPR, *, batch: int = 1, repeats:
     if memo in _chosen:  # measured once per process: a second detector or node takes the same path
         return Choice(reference if _chosen[memo] == "fp32" else _build(_chosen[memo], config, model))
     choice = Choice(reference)
-    best = None
-    for name in AUTO_CANDIDATES:
-        try:
-            backend = reference if name == "fp32" else _build(name, config, model)
-            out = backend(images, ranges)
-            choice.cosines[name] = 1.0 if name == "fp32" else cosine(out, expected)
-            choice.ms[name] = 1000 * median_seconds(partial(backend, images, ranges), repeats=repeats, warmup=0)
-        except (RuntimeSetupError, RuntimeError) as err:
-            choice.failed[name] = str(err)
-            continue
-        exact = choice.cosines[name] >= EXACT_COSINE
-        if exact and (best is None or choice.ms[name] < choice.ms[best]):
-            best, choice.backend = name, backend
+    best = _race(choice, AUTO_CANDIDATES, lambda name: reference if name == "fp32" else _build(name, config, model),
+                 images, ranges, expected, floor=EXACT_COSINE, repeats=repeats, warmup=0)
     _chosen[memo] = best or "fp32"
     log.info("LCPR: precision auto chose %s on %s (%d threads): %s", best, cpu_model(), torch.get_num_threads(),
              choice.summary())
     return choice
+
+
+def _race(choice: Choice, names: Sequence[str], build: Callable[[str], Backend], images: torch.Tensor,
+          ranges: torch.Tensor, expected: np.ndarray, *, floor: float, repeats: int, warmup: int) -> str | None:
+    """Time each candidate on the probe input, recording ms and cosine to ``expected`` (or why it failed) in
+    ``choice``; the fastest at least ``floor`` close becomes ``choice.backend``. Returns its name, or None.
+    A candidate that is the reference itself (``choice.backend`` on entry) has cosine 1 without computing it."""
+    reference = choice.backend
+    best = None
+    for name in names:
+        try:
+            backend = build(name)
+            out = backend(images, ranges)
+            choice.cosines[name] = 1.0 if backend is reference else cosine(out, expected)
+            choice.ms[name] = 1000 * median_seconds(partial(backend, images, ranges), repeats=repeats, warmup=warmup)
+        except (RuntimeSetupError, RuntimeError) as err:  # a GPU out of memory included
+            choice.failed[name] = str(err)
+            continue
+        if choice.cosines[name] >= floor and (best is None or choice.ms[name] < choice.ms[best]):
+            best, choice.backend = name, backend
+    return best
 
 
 def _choose_cuda(config: ModelConfig, model: LCPR, reference: TorchBackend, *, batch: int,
@@ -166,17 +177,8 @@ def _choose_cuda(config: ModelConfig, model: LCPR, reference: TorchBackend, *, b
     images, ranges = images.to(config.device), ranges.to(config.device)
     expected = reference(images, ranges)
     choice = Choice(reference)
-    best = None
-    for name in CUDA_PRECISIONS:
-        try:
-            backend = _build(name, config, model, batch=batch)
-            choice.cosines[name] = cosine(backend(images, ranges), expected)
-            choice.ms[name] = 1000 * median_seconds(partial(backend, images, ranges), repeats=repeats, warmup=2)
-        except (RuntimeSetupError, RuntimeError) as err:  # out of memory included
-            choice.failed[name] = str(err)
-            continue
-        if choice.cosines[name] >= GPU_COSINE and (best is None or choice.ms[name] < choice.ms[best]):
-            best, choice.backend = name, backend
+    best = _race(choice, CUDA_PRECISIONS, lambda name: _build(name, config, model, batch=batch), images, ranges,
+                 expected, floor=GPU_COSINE, repeats=repeats, warmup=2)
     _chosen[memo] = best or "fp32"
     log.info("LCPR: precision auto chose %s on %s (batch %d): %s", best, gpu_name(config.device), batch,
              choice.summary())
