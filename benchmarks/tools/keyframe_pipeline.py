@@ -1,0 +1,160 @@
+"""One keyframe, stage by stage: six nuScenes JPEGs + a LiDAR sweep -> a descriptor, on the CPU and the GPU.
+
+    python benchmarks/tools/keyframe_pipeline.py [--data DIR ...] [--devices cpu cuda] [--repeats 20] [--out DIR]
+
+For each device (``cuda`` only where torch sees one) and each network (the released size with
+seeded weights, one pass; the bundled weights, whitened and averaged over six turns), prints the
+median milliseconds of each stage as the Describer runs it:
+
+- decode: the six JPEGs to pixels (turbo: libjpeg-turbo at a reduced size on the CPU; nvjpeg: on the GPU);
+- resize + normalise: pixels to the N x 3 x H x W input, on the network's device;
+- range image: the sweep to the h x w range image (on the GPU there);
+- network: the forward pass(es) in the path ``precision: auto`` chose (named);
+- post-processing: whitening and turn averaging;
+- end to end: ``Describer.describe`` on the raw frame (decode to descriptor).
+
+Beside them, on the CPU, the released PIL pipeline's preprocessing in the same run (and the speed-up),
+and on every device the descriptor's cosine to the reference path (PIL decode, exact fp32 on the
+CPU). Real keyframes: ../shared/data/nuscenes_sample and nuscenes_sample2 by default. Every
+figure names the CPU and GPU it was measured on; ``--out`` also writes them as JSON.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from collections.abc import Callable
+from functools import partial
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:  # torch and the package are imported after the arguments are read
+    import torch
+
+    from lcpr_core import Describer, ModelConfig
+
+NETWORKS = ("released", "bundled")
+
+
+def median_ms(fn: Callable[[], object], *, device: torch.device, repeats: int, warmup: int = 2) -> float:
+    """Median wall time of ``fn()`` in ms, the GPU drained before each clock read."""
+    import torch
+
+    from lcpr_core.timing import median_seconds
+
+    def run() -> None:
+        fn()
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+
+    return 1000 * median_seconds(run, repeats=repeats, warmup=warmup)
+
+
+def network_config(network: str, device: str) -> ModelConfig:
+    """The released size with seeded weights, or the bundled weights (whitened, turn-averaged)."""
+    from lcpr_core import ModelConfig
+    from lcpr_core.pretrained import default_weights
+
+    if network == "released":
+        return ModelConfig(device=device)  # 256 x 704 images, 32 x 1056 range image, width 1.0
+    weights = default_weights()
+    if weights is None:
+        raise SystemExit("keyframe_pipeline: the bundled weights are not installed (weights/*.pth)")
+    return ModelConfig(weights=str(weights), device=device)
+
+
+def stages(describer: Describer, images: list[bytes], points: np.ndarray, *, repeats: int) -> dict[str, float]:
+    """Median ms of each stage of one keyframe (see the module doc)."""
+    import torch
+
+    from lcpr_core.lcpr.turn_average import average_turns, turned_batch
+
+    device = torch.device(describer.config.device)
+    cams = describer.cameras
+    timed: dict[str, float] = {}
+    timed["decode"] = median_ms(lambda: cams.decode(images), device=device, repeats=repeats)
+    pixels, _ = cams.decode(images)
+    timed["resize + normalise"] = median_ms(lambda: cams.assemble(pixels, len(images)), device=device,
+                                            repeats=repeats)
+    timed["range image"] = median_ms(lambda: describer.range_tensor(points), device=device, repeats=repeats)
+    prepared = describer.prepare(images, points)
+    batch = turned_batch(prepared.images, prepared.ranges) if describer.turn_average else \
+        (prepared.images, prepared.ranges)
+    timed["network"] = median_ms(lambda: describer.backend(*batch), device=device, repeats=repeats)
+    raw = describer.backend(*batch)
+
+    def post() -> np.ndarray:
+        out = describer.postprocess(raw)
+        return average_turns(out, 1) if describer.turn_average else out
+
+    timed["post-processing"] = median_ms(post, device=device, repeats=repeats)
+    timed["end to end"] = median_ms(lambda: describer.describe(images, points), device=device, repeats=repeats)
+    return timed
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", type=Path, nargs="+", default=None, help="folders each holding one nuScenes keyframe")
+    p.add_argument("--devices", nargs="+", default=None, help="default: cpu, and cuda where torch sees a GPU")
+    p.add_argument("--networks", nargs="+", choices=NETWORKS, default=list(NETWORKS))
+    p.add_argument("--repeats", type=int, default=20)
+    p.add_argument("--out", type=Path, default=None, help="write the figures as JSON here")
+    args = p.parse_args(argv)
+
+    import torch
+
+    from lcpr_common.shared_data import shared_path
+    from lcpr_core import Describer
+    from lcpr_core.lcpr.keyframe_demo import cosine
+    from lcpr_core.lcpr.preprocess.dataset_files import find_nuscenes_keyframe
+    from lcpr_core.lcpr.runtime.cuda import gpu_name
+    from lcpr_core.timing import cpu_model
+
+    folders = args.data or [shared_path("data", "nuscenes_sample"), shared_path("data", "nuscenes_sample2")]
+    devices = args.devices or (["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"])
+    frames = [find_nuscenes_keyframe(folder).read() for folder in folders]
+    print(f"CPU: {cpu_model()}, {torch.get_num_threads()} torch threads; torch {torch.__version__}")
+    for device in devices:
+        if device.startswith("cuda"):
+            print(f"GPU ({device}): {gpu_name(device)}")
+    results: list[dict[str, Any]] = []
+    for network in args.networks:
+        reference = Describer(dataclasses.replace(network_config(network, "cpu"), decode="pil", precision="fp32"))
+        expected = [reference.describe(images, points) for images, points in frames]
+        for device in devices:
+            describer = Describer(network_config(network, device))
+            cfg = describer.config
+            print(f"\n{network} network ({cfg.image_size[0]}x{cfg.image_size[1]} images, width {cfg.width:g}"
+                  f"{', six turns' if describer.turn_average else ''}) on {device}: precision {describer.path}, "
+                  f"decoder {describer.cameras.decoder}; median of {args.repeats} (ms)")
+            for (images, points), folder, want in zip(frames, folders, expected, strict=True):
+                timed = stages(describer, images, points, repeats=args.repeats)
+                row: dict[str, Any] = {"network": network, "device": device, "keyframe": Path(folder).name,
+                                       "precision": describer.path, "decoder": describer.cameras.decoder,
+                                       "ms": timed, "cosine_to_reference": cosine(describer.describe(images, points),
+                                                                                   want)}
+                line = "  ".join(f"{k} {v:.2f}" for k, v in timed.items())
+                print(f"  {Path(folder).name}: {line}  | cosine to the PIL + exact fp32 CPU path "
+                      f"{row['cosine_to_reference']:.7f}")
+                if device == "cpu":
+                    pil = Describer(dataclasses.replace(cfg, decode="pil"), model=describer.model)
+                    ms = median_ms(partial(pil.inputs, images, points), device=torch.device("cpu"),
+                                   repeats=max(5, args.repeats // 4))
+                    fast = timed["decode"] + timed["resize + normalise"] + timed["range image"]
+                    row["pil_preprocessing_ms"] = ms
+                    print(f"  {'':{len(Path(folder).name)}}  preprocessing {fast:.2f} (PIL, the released pipeline, "
+                          f"{ms:.2f}: {ms / fast:.1f}x)")
+                results.append(row)
+    if args.out:
+        args.out.mkdir(parents=True, exist_ok=True)
+        meta = {"cpu": cpu_model(), "threads": torch.get_num_threads(), "torch": torch.__version__,
+                "gpu": gpu_name("cuda") if torch.cuda.is_available() else None}
+        (args.out / "keyframe_pipeline.json").write_text(json.dumps({"meta": meta, "rows": results}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
