@@ -12,7 +12,8 @@ setup(
     license="MIT",
     python_requires=">=3.10",
     packages=find_packages(
-        include=["lcpr_core*", "lcpr_ros*", "msg_tools*", "ros_common*", "vseq2pc_ros*", "citysim*"]
+        include=["lcpr_common*", "lcpr_core*", "lcpr_offline*", "lcpr_ros*", "msg_tools*", "ros_common*",
+                 "vseq2pc_ros*", "citysim*"]
     ),
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
@@ -47,8 +48,10 @@ setup(
         # nvJPEG decoding on a GPU (model.decode auto / nvjpeg): the torchvision built for the user's CUDA torch;
         # imported only with model.device cuda (PyPI's CPU torchvision does not import beside the CPU torch pin).
         "gpu": ["torchvision>=0.19"],
-        # The registration comparison in benchmarks/registration_compare.py.
+        # The registration comparison in benchmarks/tools/registration_compare.py.
         "compare": ["kiss-icp>=1.0"],
+        # LiDAR odometry for the back end: the lcpr_kiss_icp node and benchmarks/tools/backend_ate.py.
+        "odometry": ["kiss-icp>=1.0"],
         # Tests, and the linter and type checker CI runs before them (pinned: a new release may
         # add rules, and CI should not turn red on a clone nobody changed).
         "test": [
@@ -60,7 +63,11 @@ setup(
             "mypy==2.4.1",
             "types-PyYAML",
             "types-tqdm",
+            "import-linter==2.17",  # lint-imports: the layering contracts in setup.cfg
         ],
+        # The documentation site (mkdocs.yml, docs/): `mkdocs build --strict`, which CI runs, and `mkdocs serve`.
+        # Pinned for the same reason as the test tools: a new release may add warnings, and --strict fails on them.
+        "docs": ["mkdocs==1.6.1", "mkdocs-material==9.8.2"],
     },
     zip_safe=True,
     tests_require=["pytest"],
@@ -68,19 +75,22 @@ setup(
         "console_scripts": [
             "lcpr_demo = lcpr_ros.demo:main",
             "lcpr_keyframe_demo = lcpr_core.lcpr.keyframe_demo:main",
-            "lcpr_quantize = lcpr_core.lcpr.runtime.quantize:main",
+            "lcpr_quantize = lcpr_offline.lcpr_quantize:main",
             "lcpr_node = lcpr_ros.node:main",
+            "lcpr_backend = lcpr_ros.backend_node:main",
+            "lcpr_kiss_icp = lcpr_ros.kiss_icp_node:main",
             "lcpr_replay = lcpr_ros.replay:main",
             "lcpr_eval = lcpr_ros.evaluate:main",
             "vseq2pc_node = vseq2pc_ros.node:main",
-            "lcpr_train = lcpr_core.lcpr.training.cli:main",
-            "vseq2pc_cache = lcpr_core.vseq2pc.dataset:main",
+            "lcpr_train = lcpr_offline.lcpr_train:main",
+            "vseq2pc_cache = lcpr_offline.vseq2pc_cache:main",
             "vseq2pc_train = lcpr_core.vseq2pc.training.cli:main",
             "vseq2pc_eval = lcpr_core.vseq2pc.evaluate:main",
             "msg_tools_nuscenes2bag = msg_tools.convert.nuscenes:main",
             "msg_tools_kitti2bag = msg_tools.convert.kitti:main",
             "msg_tools_baginfo = msg_tools.convert.baginfo:main",
-            "msg_tools_synth = citysim.cli:main",
+            "citysim = citysim.cli:main",
+            "msg_tools_synth = citysim.cli:main",  # the same command under the name interfaces.md gives it
         ],
     },
 )

@@ -4,7 +4,7 @@
     drive = SyntheticDrive(SynthConfig(rig="nuscenes", frames=300, seed=0))
     for frame in drive.frames(workers=2):   # msg_tools.frames.SensorFrame, in order
         ...
-    write_bag(drive, "out/synth.bag")       # or the console script msg_tools_synth
+    write_bag(drive, "out/synth.bag")       # or the console script citysim
 
 Modules: world (the city model), citygen/props/ground (seeded generation), route (street
 graph, drives, KITTI-00 import), raycast (2.5-D ray casting), camera, lidar, materials,

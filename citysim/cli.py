@@ -1,4 +1,5 @@
-"""``msg_tools_synth``: render a synthetic city drive into a rosbag2 (``python -m citysim.cli``)."""
+"""``citysim``: render a synthetic city drive into a rosbag2 (``python -m citysim.cli``; also installed as
+``msg_tools_synth``, the name interfaces other programs use)."""
 from __future__ import annotations
 
 import argparse
@@ -8,10 +9,10 @@ import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
+from lcpr_common.progress import progress_iter
 from msg_tools.bags.writer import STORAGES
 from msg_tools.errors import MsgToolsError
 from msg_tools.frames import SensorFrame
-from msg_tools.progress import progress_iter
 
 from .bagout import write_bag
 from .depthnet import DEPTH_NOISE, DEPTH_RANGE
@@ -35,7 +36,7 @@ def image_size(text: str) -> tuple[int, int]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="msg_tools_synth", description=DESCRIPTION)
+    p = argparse.ArgumentParser(prog="citysim", description=DESCRIPTION)
     p.add_argument("--rig", choices=RIGS, default="nuscenes", help="sensor rig (default nuscenes)")
     p.add_argument("--frames", type=int, default=300, help="keyframes to render (default 300)")
     p.add_argument("--seed", type=int, default=0, help="world, route and noise seed (default 0)")
@@ -99,7 +100,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         report = write_bag(drive, args.out, workers=args.workers, storage=args.storage, overwrite=args.overwrite,
                            wrap=bar)
     except (MsgToolsError, ValueError, FileNotFoundError) as err:
-        print(f"msg_tools_synth: error: {err}", file=sys.stderr)
+        print(f"citysim: error: {err}", file=sys.stderr)
         return 2
     stats = drive.revisits()
     print(f"bag:        {args.out} ({config.rig} rig, {config.route} route, seed {config.seed})")

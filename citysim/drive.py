@@ -11,8 +11,8 @@ from typing import Any
 
 import numpy as np
 
+from lcpr_common.shared_data import shared_path
 from msg_tools.frames import CameraImage, SensorFrame
-from msg_tools.shared_data import shared_path
 
 from .camera import encode_jpeg, lighting, render_camera
 from .citygen import CityConfig, grid_city, path_city

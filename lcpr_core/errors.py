@@ -41,6 +41,18 @@ class PoseGraphError(LcprError):
     """A trajectory, loop constraint or option handed to the pose-graph back end cannot be used."""
 
 
+class BackendError(PoseGraphError):
+    """The online back end (:mod:`lcpr_core.backend`) refused an input, an option or a graph file.
+
+    ``reason`` is a short, stable cause (counted in the back end's statistics); the message names the
+    value. After a refusal the graph, and any file it was saved to, are as they were.
+    """
+
+    def __init__(self, message: str, *, reason: str = "invalid input") -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
 class VerificationError(LcprError, ValueError):
     """Geometric verification was given clouds, transforms or settings it cannot use."""
 

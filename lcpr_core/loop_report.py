@@ -1,6 +1,6 @@
 """Scoring published loop closures against ground truth, and what a pose graph makes of them.
 
-One home for the rule lcpr_eval (``lcpr_core.lcpr.evaluate``) and the demo (``lcpr_ros.demo``)
+One home for the rule lcpr_eval (``lcpr_offline.lcpr_evaluate``) and the demo (``lcpr_ros.demo``)
 both report by. Pure numpy; :func:`pose_graph_proof` needs GTSAM (optional, see
 :mod:`lcpr_core.posegraph`) and matplotlib for its plot.
 
@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from .errors import InputShapeError, InvalidValueError
+from .geometry import relative, skew
 from .metrics import PRResult, pr_sweep
 from .posegraph import (
     DriftModel,
@@ -138,7 +139,7 @@ def loop_pose_errors(
         if loop.match_T_query is None or not (np.isfinite(truth[q]).all() and np.isfinite(truth[m]).all()):
             out.append(None)
             continue
-        true_rel = np.linalg.inv(truth[m]) @ truth[q]
+        true_rel = relative(truth[m], truth[q])
         out.append(relative_pose_error(np.asarray(loop.match_T_query, np.float64), true_rel))
     return out
 
@@ -221,10 +222,9 @@ def covariance_lidar_to_body(
                               "expected (6, 6), (4, 4), (4, 4)")
     re, te = e[:3, :3], e[:3, 3]
     w = x[:3, :3] @ re.T @ te
-    skew = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
     j = np.zeros((6, 6))
     j[:3, :3] = j[3:, 3:] = re
-    j[:3, 3:] = re @ skew
+    j[:3, 3:] = re @ skew(w)
     out = j @ cov @ j.T
     return 0.5 * (out + out.T)
 

@@ -43,11 +43,20 @@ import numpy as np
 
 from .atomic import save_figure
 from .errors import PoseGraphError
+from .geometry import (
+    conjugate,
+    heading_deg,
+    nearest_rotation,
+    relative,
+    rotation_angle_deg,
+    so3_exp,
+    umeyama_rigid,
+)
 
 __all__ = [
     "DriftModel", "LoopConstraint", "PoseGraphConfig", "PoseGraphResult", "ROBUST_KERNELS",
     "ate_rmse", "drift_odometry", "lidar_to_body", "optimize_pose_graph", "plot_trajectories",
-    "relative_pose_error", "rotation_error_deg", "to_gtsam_covariance", "yaw_deg",
+    "relative_pose_error", "rotation_angle_deg", "rotation_error_deg", "to_gtsam_covariance", "yaw_deg",
 ]
 
 #: Accepted values of :attr:`PoseGraphConfig.robust`.
@@ -135,11 +144,11 @@ def drift_odometry(truth: np.ndarray, *, model: DriftModel = DriftModel()) -> tu
     drifted[0] = poses[0]
     covs = np.zeros((max(n - 1, 0), 6, 6))  # (N-1, 6, 6)
     for i in range(n - 1):
-        rel = _inverse(poses[i]) @ poses[i + 1]
+        rel = relative(poses[i], poses[i + 1])
         sigmas = model.step_sigmas(float(np.linalg.norm(rel[:3, 3])))
         noise = rng.standard_normal(6) * sigmas  # (x, y, z, roll, pitch, yaw)
         noisy = rel.copy()
-        noisy[:3, :3] = _so3_exp(noise[3:]) @ rel[:3, :3]
+        noisy[:3, :3] = so3_exp(noise[3:]) @ rel[:3, :3]
         noisy[:3, 3] += noise[:3]
         drifted[i + 1] = drifted[i] @ noisy
         covs[i] = np.diag(sigmas**2)
@@ -243,7 +252,7 @@ def optimize_pose_graph(
 
     def pose3(matrix: np.ndarray) -> Any:
         m = np.array(matrix, np.float64)
-        m[:3, :3] = _project_rotation(m[:3, :3])
+        m[:3, :3] = nearest_rotation(m[:3, :3])
         return gtsam.Pose3(m)
 
     def gaussian(cov: np.ndarray, rel: np.ndarray) -> Any:
@@ -255,7 +264,7 @@ def optimize_pose_graph(
         initial.insert(i, pose3(poses[i]))
     graph.add(gtsam.PriorFactorPose3(0, pose3(poses[0]), gtsam.noiseModel.Isotropic.Sigma(6, config.prior_sigma)))
     for i in range(n - 1):
-        rel = _inverse(poses[i]) @ poses[i + 1]
+        rel = relative(poses[i], poses[i + 1])
         graph.add(gtsam.BetweenFactorPose3(i, i + 1, pose3(rel), gaussian(covs[i], rel)))
     m_estimators = gtsam.noiseModel.mEstimator
     make_kernel = {"huber": m_estimators.Huber.Create, "cauchy": m_estimators.Cauchy.Create}.get(config.robust)
@@ -308,7 +317,7 @@ def ate_rmse(estimate: np.ndarray, truth: np.ndarray, *, align: bool = False) ->
     if len(est) == 0:
         raise PoseGraphError("empty trajectories; expected at least one pose")
     if align:
-        rot, shift = _umeyama_rigid(est, ref)
+        rot, shift = umeyama_rigid(est, ref)
         est = est @ rot.T + shift
     return float(np.sqrt(((est - ref) ** 2).sum(axis=1).mean()))
 
@@ -318,13 +327,7 @@ def yaw_deg(pose: np.ndarray) -> float:
     m = np.asarray(pose, np.float64)
     if m.shape not in ((4, 4), (3, 3)) or not np.isfinite(m).all():
         raise PoseGraphError(f"pose of shape {m.shape}; expected a finite (4, 4) pose or (3, 3) rotation")
-    return math.degrees(math.atan2(m[1, 0], m[0, 0]))
-
-
-def rotation_angle_deg(rotation: np.ndarray) -> np.ndarray:
-    """Angle (deg, 0..180) of ... x 3 x 3 rotation matrices (a float for one): |log(R)|, no checks."""
-    r = np.asarray(rotation, np.float64)
-    return np.degrees(np.arccos(np.clip((np.trace(r, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)))
+    return heading_deg(m)
 
 
 def rotation_error_deg(estimate_T: np.ndarray, truth_T: np.ndarray) -> float:
@@ -342,7 +345,7 @@ def relative_pose_error(estimate_T: np.ndarray, truth_T: np.ndarray) -> tuple[fl
     est = _check_poses(estimate_T, "estimate_T", single=True)
     ref = _check_poses(truth_T, "truth_T", single=True)
     err = ref[:3, :3].T @ est[:3, :3]
-    return float(np.linalg.norm(est[:3, 3] - ref[:3, 3])), abs(yaw_deg(err))
+    return float(np.linalg.norm(est[:3, 3] - ref[:3, 3])), abs(heading_deg(err))
 
 
 def lidar_to_body(match_T_query_lidar: np.ndarray, body_T_lidar: np.ndarray) -> np.ndarray:
@@ -352,7 +355,7 @@ def lidar_to_body(match_T_query_lidar: np.ndarray, body_T_lidar: np.ndarray) -> 
     """
     rel = _check_poses(match_T_query_lidar, "match_T_query_lidar", single=True)
     ext = _check_poses(body_T_lidar, "body_T_lidar", single=True)
-    return ext @ rel @ _inverse(ext)
+    return conjugate(ext, rel)
 
 
 # ============================================================================ plot
@@ -478,36 +481,3 @@ def _positions(traj: Any, name: str) -> np.ndarray:
         first = np.flatnonzero(~np.isfinite(arr).all(axis=1))[0]
         raise PoseGraphError(f"{name} holds NaN or inf at pose {first}; expected finite positions")
     return arr
-
-
-def _inverse(pose: np.ndarray) -> np.ndarray:
-    out = np.eye(4)
-    out[:3, :3] = pose[:3, :3].T
-    out[:3, 3] = -pose[:3, :3].T @ pose[:3, 3]
-    return out
-
-
-def _so3_exp(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix of the rotation vector ``w`` (3,) (Rodrigues)."""
-    theta = float(np.linalg.norm(w))
-    k = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    if theta < 1e-12:
-        return np.eye(3) + k
-    return np.eye(3) + math.sin(theta) / theta * k + (1.0 - math.cos(theta)) / theta**2 * (k @ k)
-
-
-def _project_rotation(r: np.ndarray) -> np.ndarray:
-    """The rotation matrix nearest ``r`` (3, 3), removing round-off before GTSAM sees it."""
-    u, _, vt = np.linalg.svd(r)
-    d = np.sign(np.linalg.det(u @ vt))
-    return u @ np.diag([1.0, 1.0, d]) @ vt
-
-
-def _umeyama_rigid(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation (3, 3) and translation (3,) minimising |R source + t - target|^2 (no scale)."""
-    mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
-    cov = (target - mu_t).T @ (source - mu_s) / len(source)
-    u, _, vt = np.linalg.svd(cov)
-    s = np.diag([1.0, 1.0, np.sign(np.linalg.det(u) * np.linalg.det(vt)) or 1.0])
-    rot = u @ s @ vt
-    return rot, mu_t - rot @ mu_s

@@ -30,16 +30,16 @@ from pathlib import Path
 
 import numpy as np
 
+from lcpr_common.progress import progress_iter
 from lcpr_core.atomic import write_bytes_atomic
 from lcpr_core.errors import LcprError
 from lcpr_core.evaluation import recall_at_full_precision
 from lcpr_core.loop_report import PublishedLoop, fitness_sweep, pose_graph_proof, score_loops
 from lcpr_core.metrics import plot_pr_curve, pr_sweep
 from lcpr_core.posegraph import DriftModel
-from lcpr_core.pretrained import BUNDLED_MAX_DISTANCE, default_weights
+from lcpr_core.pretrained import BUNDLED, BUNDLED_MAX_DISTANCE, SEEDED, describe_weights, resolve_weights
+from lcpr_core.revisits import revisit_pairs
 from msg_tools.frames import NUSCENES_TOPICS
-from msg_tools.ground_truth import revisit_pairs
-from msg_tools.progress import progress_iter
 
 RADIUS = 9.0  # m: a loop is correct when the matched keyframe is this close (the paper's threshold)
 MIN_GAP = 30.0  # s: the node excludes younger keyframes, and so does the ground truth
@@ -74,9 +74,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     weights.add_argument("--weights", default=None, help="LCPR checkpoint (default: the bundled trained one)")
     weights.add_argument("--seeded", action="store_true", help="use the seeded random initialisation")
     p.add_argument("--max-distance", type=float, default=None,
-                   help="match.max_distance for the node (default: the node's, 1.0: every candidate of the top 10 "
-                        f"is verified; with --no-verify and the bundled weights {BUNDLED_MAX_DISTANCE:.2f}, chosen "
-                        "on a validation city)")
+                   help="match.max_distance for the node (default: the node's automatic choice: every candidate "
+                        "of the top 10 is verified; with --no-verify the weights file's operating threshold, "
+                        f"{BUNDLED_MAX_DISTANCE:.2f} for the bundled weights, chosen on a validation city)")
     p.add_argument("--no-verify", action="store_true",
                    help="publish the nearest descriptor without checking it against the LiDAR (the old behaviour)")
     p.add_argument("--drift-seed", type=int, default=0, help="seed of the odometry drift of the pose-graph proof")
@@ -114,8 +114,7 @@ def start_node(args: argparse.Namespace, weights: str, domain: int, log: Path) -
         "input_qos": "reliable",  # a replay should lose nothing; live sensors use sensor_data
         "model.threads": "2",
     }
-    if weights:  # an empty value is not valid --ros-args syntax; "" is the default anyway
-        params["model.weights"] = weights
+    params["model.weights"] = weights
     if args.max_distance is not None:
         params["match.max_distance"] = str(args.max_distance)
     if args.no_verify:
@@ -136,14 +135,13 @@ def run(args: argparse.Namespace) -> int:
     from .replay import replay, shared_memory_profile
 
     args.out.mkdir(parents=True, exist_ok=True)
-    weights = "" if args.seeded else (args.weights or default_weights() or "")
-    if args.no_verify and args.max_distance is None and weights and weights == default_weights():
-        args.max_distance = BUNDLED_MAX_DISTANCE
+    weights = SEEDED if args.seeded else (args.weights or BUNDLED)
     bag, truth = make_drive(args)
     domain = random.randint(1, 100)
     os.environ["ROS_DOMAIN_ID"] = str(domain)
     log = args.out / "node.log"
-    described = weights or "seeded random initialisation (NOT a trained model: expect poor loops)"
+    resolved = resolve_weights(weights)
+    described = describe_weights(resolved)
     print(f"[2/4] starting lcpr_node (weights: {described}); its log: {log}")
     node_proc = start_node(args, weights, domain, log)
     with shared_memory_profile():  # the replaying participant's segment must hold whole frames (see .replay)
@@ -174,7 +172,7 @@ def run(args: argparse.Namespace) -> int:
             node.destroy_node()
             rclpy.shutdown()
     print("[4/4] scoring what the node published")
-    return report(args, truth, listener.out, detector, inputs, stats.seconds, described)
+    return report(args, truth, listener.out, detector, inputs, stats.seconds, resolved or SEEDED)
 
 
 def _wait_until_quiet(listener, *, quiet_s: float, timeout: float) -> None:

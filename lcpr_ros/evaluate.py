@@ -3,8 +3,8 @@
     lcpr_eval BAG [--weights FILE] [--precision P] [--runtime R] [--threads N] [--limit N] [--out DIR] ...
     lcpr_eval BAG --params-file config/lcpr.yaml [--weights FILE]      # exactly what lcpr_node would run
 
-Builds :class:`lcpr_core.lcpr.evaluate.EvalOptions` from the flags, or from the node's parameter file
-(:func:`lcpr_ros.params.settings_from_file`), and runs :func:`lcpr_core.lcpr.evaluate.evaluate_bag`;
+Builds :class:`lcpr_offline.lcpr_evaluate.EvalOptions` from the flags, or from the node's parameter file
+(:func:`lcpr_ros.params.settings_from_file`), and runs :func:`lcpr_offline.lcpr_evaluate.evaluate_bag`;
 writes report.json, pr_curve.png, latency.png, trajectory.png (and posegraph.png) into ``--out``.
 Protocols: see :mod:`lcpr_core.evaluation`.
 """
@@ -21,8 +21,12 @@ from lcpr_core.errors import LcprError
 from lcpr_core.evaluation import summary_table, throughput_line
 from lcpr_core.keyframes import KeyframeConfig
 from lcpr_core.lcpr.describer import PRECISIONS, RUNTIMES, ModelConfig
-from lcpr_core.lcpr.detector import DetectorConfig
-from lcpr_core.lcpr.evaluate import (  # noqa: F401 - the evaluation's API, importable from the command's module too
+from lcpr_core.lcpr.preprocess import PRESETS
+from lcpr_core.lcpr.preprocess.cameras import DECODERS
+from lcpr_core.pretrained import SEEDED, command_weights, describe_weights, resolve_weights
+from lcpr_core.scan_context import ScanContextConfig
+from lcpr_core.verification import VerifierConfig
+from lcpr_offline.lcpr_evaluate import (  # noqa: F401 - the evaluation's API, importable from the command's module too
     LIDAR_FOR_TOPICS,
     N_VALUES,
     OUTPUT_FILES,
@@ -32,18 +36,13 @@ from lcpr_core.lcpr.evaluate import (  # noqa: F401 - the evaluation's API, impo
     evaluate_bag,
     write_outputs,
 )
-from lcpr_core.lcpr.preprocess import PRESETS
-from lcpr_core.lcpr.preprocess.cameras import DECODERS
-from lcpr_core.scan_context import ScanContextConfig
-from lcpr_core.verification import VerifierConfig
 from msg_tools.errors import MsgToolsError
 from msg_tools.transforms import BASE_FRAME
 
-from .config import NodeConfig
-from .params import Settings
+from .params import NODE_DEFAULTS
 
 #: What lcpr_node runs with no parameters set: the flags' defaults (one configuration source).
-NODE = Settings(DetectorConfig(), NodeConfig())
+NODE = NODE_DEFAULTS
 
 
 # ------------------------------------------------------------------------------- command line
@@ -53,7 +52,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("bag", type=Path, help="rosbag2 folder (sqlite3 or mcap) with cameras, LiDAR and odometry")
     p.add_argument("--out", type=Path, default=Path("out/eval"), help="output folder (default out/eval)")
     g = p.add_argument_group("model")
-    g.add_argument("--weights", default="", help="LCPR checkpoint or state dict (default: seeded random init)")
+    g.add_argument("--weights", default="",
+                   help="LCPR checkpoint or state dict (default: the bundled trained weights; 'seeded' = random)")
+    g.add_argument("--seeded", action="store_true", help="random weights (testing only), as --weights seeded")
     g.add_argument("--imagenet", default="", help="torchvision resnet18 state dict, used without --weights")
     g.add_argument("--seed", type=int, default=0, help="random initialisation seed (default 0)")
     g.add_argument("--precision", choices=PRECISIONS, default=NODE.detector.model.precision,
@@ -143,6 +144,8 @@ def options_from_params_file(args: argparse.Namespace) -> EvalOptions:
     topics = dataclasses.replace(base, cameras=tuple(node.camera_topics), camera_info=(), depth=(), labels=(),
                                  lidar=node.lidar_topic, odom=args.odom_topic or node.odom_topic or base.odom)
     overrides = {k: getattr(args, k) for k in ("weights", "imagenet", "threads", "device") if getattr(args, k)}
+    if args.seeded:
+        overrides["weights"] = SEEDED
     if args.seed:
         overrides["seed"] = args.seed
     return EvalOptions(
@@ -177,7 +180,8 @@ def options_from_args(args: argparse.Namespace) -> EvalOptions:
     if args.camera_topics:  # depth/label topics belong to the preset's cameras
         topics = dataclasses.replace(topics, depth=(), labels=())
     model = ModelConfig(
-        weights=args.weights, imagenet=args.imagenet, seed=args.seed, num_cameras=len(topics.cameras),
+        weights=SEEDED if args.seeded else command_weights(args.weights, imagenet=args.imagenet),
+        imagenet=args.imagenet, seed=args.seed, num_cameras=len(topics.cameras),
         image_size=tuple(args.image_size) if args.image_size else ModelConfig().image_size,
         lidar=args.lidar or LIDAR_FOR_TOPICS[args.topics], precision=args.precision, threads=args.threads,
         runtime=args.runtime, device=args.device or "cpu", decode=args.decode,
@@ -195,6 +199,8 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     try:
         options = options_from_args(args)
+        if not options.model.imagenet or options.model.weights:
+            print(f"lcpr_eval: LCPR {describe_weights(resolve_weights(options.model.weights))}", file=sys.stderr)
         report = evaluate_bag(args.bag, options, progress=not args.quiet)
         paths = write_outputs(report, args.out)
     except (LcprError, MsgToolsError, ValueError, OSError) as err:
@@ -203,8 +209,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\nlcpr_eval {args.bag} ({report.wall_time_s:.1f} s)")
     print(summary_table(report, n_values=N_VALUES))
     print(throughput_line(report))
-    if not (args.weights or args.imagenet):
-        print("note: LCPR ran with random weights (no --weights): its numbers are not those of a trained model")
+    if not (report.settings["model"]["weights"] or report.settings["model"]["imagenet"]):
+        print("note: LCPR ran with random weights (--seeded): its numbers are not those of a trained model")
     print("written: " + ", ".join(str(p) for p in paths))
     return 0
 

@@ -26,6 +26,7 @@ from visualization_msgs.msg import MarkerArray
 
 from lcpr_core.lcpr.detector import DetectorConfig, Frame, LoopDetector
 from lcpr_core.lcpr.preprocess.camera import CameraInput
+from lcpr_core.pretrained import describe_weights, threshold_text
 from ros_common.diagnostics import DiagnosticsBuilder, Health
 from ros_common.errors import ConfigError, InputRejected
 from ros_common.inputs import offer_odometry
@@ -79,6 +80,9 @@ class LcprNode(NodeStats, Node):
             self.detector = LoopDetector(det_cfg, prior_map=prior)
         except Exception as err:  # noqa: BLE001 - weights, device, sizes: all refuse the start
             raise ConfigError(f"cannot build the detector from the model.* parameters: {err}") from err
+        threshold = threshold_text(det_cfg.match.max_distance, self.detector.weights_threshold,
+                                   verified=det_cfg.verify.enabled)
+        log.info(f"LCPR: {describe_weights(self.detector.describer.config.weights)}; {threshold}")
         self._detector_lock = threading.Lock()
         self._next_detector_config: DetectorConfig | None = None
 
@@ -217,7 +221,7 @@ class LcprNode(NodeStats, Node):
             if synced.new_session:
                 self.detector.start_session()
             result = self.detector.process(frame)
-            max_distance = self.detector.config.match.max_distance
+            max_distance = self.detector.max_distance
         for k, why in result.camera_errors.items():  # undecodable bytes: that camera left out of this frame
             self._reject(InputRejected(IMAGE_DECODE, f"{self.settings.node.camera_topics[k]}: {why}"))
         self.decisions.add(result.reason)

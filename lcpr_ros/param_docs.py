@@ -37,7 +37,8 @@ DOCS: dict[str, ParamDoc] = {
     "verify.cloud.max_points": ParamDoc("points kept per keyframe cloud (6 bytes each)", 100, 1_000_000),
 
     # ---- model (read-only: the network is built once)
-    "model.weights": ParamDoc("released LCPR checkpoint or state dict; empty = seeded random weights (testing only)"),
+    "model.weights": ParamDoc("LCPR weights: bundled (the trained weights shipped, synthetic cities), a checkpoint "
+                              "file (the authors' released one for a real vehicle), or seeded (random, testing only)"),
     "model.imagenet": ParamDoc("torchvision resnet18 state dict for the ResNet blocks, used when model.weights "
                                "is empty"),
     "model.seed": ParamDoc("seed of the random initialisation, used when both weight files are empty", 0, BIG),
@@ -78,8 +79,10 @@ DOCS: dict[str, ParamDoc] = {
     "keyframe.min_distance": ParamDoc("m travelled between keyframes when poses are known; 0 = off",
                                       0.0, 1e6, dynamic=True),
     "match.top_k": ParamDoc("candidates per query", 1, 1000, dynamic=True),
-    "match.max_distance": ParamDoc("descriptor L2 distance a candidate must be under (unit vectors: 0..2)",
-                                   0.0, 2.0, dynamic=True),
+    "match.max_distance": ParamDoc("descriptor L2 distance a candidate must be under (unit vectors: 0..2); -1 = "
+                                   "automatic: 1.0 with verification (every top-k candidate is checked), without it "
+                                   "the weights file's operating threshold (bundled: 0.70; 1.0 for files without one)",
+                                   -1.0, 2.0, dynamic=True),
     "match.exclude_recent_s": ParamDoc("this session's keyframes newer than this many seconds are not matched",
                                        0.0, 1e9, dynamic=True),
     "match.exclude_recent_count": ParamDoc("and neither are the last N keyframes; 0 = off", 0, BIG, dynamic=True),

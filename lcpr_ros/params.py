@@ -13,7 +13,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from lcpr_core.lcpr.describer import ModelConfig
 from lcpr_core.lcpr.detector import DetectorConfig
+from lcpr_core.pretrained import BUNDLED, command_weights
 from ros_common.errors import ConfigError
 from ros_common.params import Leaf, build, describe, leaves, read_params_file, to_yaml, unique
 
@@ -23,7 +25,7 @@ from .param_docs import DOCS
 YAML_HEADER = """lcpr_node parameters (node name lcpr) with their defaults, which come from the config
 dataclasses (lcpr_core.lcpr.detector.DetectorConfig, lcpr_ros.config.NodeConfig).
 Use: lcpr_node --ros-args --params-file config/lcpr.yaml
-Regenerate after adding fields (test/test_ros_params.py checks that every parameter is here):
+Regenerate after adding fields (test/ros/test_ros_params.py checks that every parameter is here):
   python -c "from lcpr_ros.params import yaml_text; print(yaml_text(), end='')" > config/lcpr.yaml
 """
 
@@ -36,18 +38,24 @@ class Settings:
     node: NodeConfig
 
 
-ROOTS: tuple[type, ...] = (DetectorConfig, NodeConfig)
+#: The node's defaults: the config dataclasses' own, except that the node runs the bundled trained weights
+#: (the Python API's ModelConfig keeps "" = no weights).
+NODE_DEFAULTS = Settings(DetectorConfig(model=ModelConfig(weights=BUNDLED)), NodeConfig())
 #: deprecated parameter name -> today's; the old name is still read, with a warning
 RENAMED: dict[str, str] = {"map.model": "map.descriptor_tag"}
 
 
 def all_leaves() -> list[Leaf]:
     """Every parameter of the node, names unique."""
-    return unique([leaf for root in ROOTS for leaf in leaves(root(), docs=DOCS)])
+    roots = (NODE_DEFAULTS.detector, NODE_DEFAULTS.node)
+    return unique([leaf for root in roots for leaf in leaves(root, docs=DOCS)])
 
 
 def settings_from(values: Mapping[str, Any]) -> Settings:
-    """Build and cross-check both configs from Python-typed parameter values (ConfigError if refused)."""
+    """Build and cross-check both configs from Python-typed parameter values, absent ones at the node's
+    defaults (ConfigError if refused). An empty ``model.weights`` means the bundled weights, as by default."""
+    values = {**{leaf.name: leaf.default for leaf in all_leaves()}, **values}
+    values["model.weights"] = command_weights(values["model.weights"], imagenet=values["model.imagenet"])
     detector = build(DetectorConfig, values)
     node = build(NodeConfig, values)
     try:
@@ -73,3 +81,32 @@ def describe_all() -> str:
     old = "".join(f"\n  {name} (deprecated: the old name of {new}, still read with a warning)"
                   for name, new in RENAMED.items())
     return describe(all_leaves()) + old
+
+
+MARKDOWN_PAGE = "docs/reference/lcpr_node_parameters.md"
+MARKDOWN_HEADER = f"""# lcpr_node parameters
+
+Every parameter of `lcpr_node` (node name `lcpr`) with its default, type, accepted range and
+description, generated from the config dataclasses (`lcpr_core.lcpr.detector.DetectorConfig`,
+`lcpr_ros.config.NodeConfig`) and `lcpr_ros.param_docs.DOCS`, as `config/lcpr.yaml` is. "run time"
+marks the parameters that can change while the node runs (`ros2 param set`); the others are read at
+start. Invalid values are refused with the reason, at start (exit 1) and at run time.
+`lcpr_node --help` prints the same list.
+
+Do not edit this page: `test/project/test_docs_site.py` fails when it differs from the dataclasses.
+Regenerate it with
+
+```bash
+.venv/bin/python -c "from lcpr_ros.params import markdown_text; print(markdown_text(), end='')" > {MARKDOWN_PAGE}
+```
+"""
+
+
+def markdown_text() -> str:
+    """docs/reference/lcpr_node_parameters.md: every parameter as Markdown tables (the docs site's page)."""
+    from ros_common.params import to_markdown
+
+    old = "".join(f"- `{name}`: the old name of `{new}`, still read (node overrides and `--params-file`) with a "
+                  "deprecation warning.\n" for name, new in RENAMED.items())
+    renamed = f"## Renamed parameters\n\n{old}" if old else ""
+    return f"{MARKDOWN_HEADER}\n{to_markdown(all_leaves())}\n{renamed}"

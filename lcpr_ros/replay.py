@@ -47,9 +47,9 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
+from lcpr_common.progress import progress_bar
 from msg_tools.bags.open import open_bag
 from msg_tools.errors import BagError
-from msg_tools.progress import progress_bar
 from ros_common.stamps import NS_PER_S
 
 QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)

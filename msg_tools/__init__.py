@@ -38,7 +38,7 @@ from .frames import (
     SensorFrame,
     Topics,
 )
-from .ground_truth import poses_from_frames, revisit_pairs
+from .ground_truth import poses_from_frames
 from .image import array_to_image, depth_to_metres, image_to_array, image_to_rgb
 from .pointcloud import array_to_pointcloud2, pointcloud2_to_array, xyz_cloud
 from .transforms import odometry_to_pose, pose_to_odometry
@@ -53,6 +53,6 @@ __all__ = [
     "array_to_compressed", "array_to_image", "array_to_pointcloud2", "bag_summary", "camera_info_to_model",
     "compressed_bytes", "compressed_from_bytes", "compressed_jpeg_bytes", "compressed_to_array", "depth_to_metres",
     "image_to_array", "image_to_rgb", "model_to_camera_info", "odometry_to_pose", "pointcloud2_to_array",
-    "pose_to_odometry", "poses_from_frames", "read_camera_models", "read_frames", "revisit_pairs", "sec_to_stamp",
+    "pose_to_odometry", "poses_from_frames", "read_camera_models", "read_frames", "sec_to_stamp",
     "stamp_to_ns", "stamp_to_sec", "typestore", "xyz_cloud",
 ]

@@ -71,4 +71,4 @@ class DatasetError(MsgToolsError):
 
 
 class TrajectoryError(MsgToolsError, ValueError):
-    """Positions, stamps or poses handed to the ground-truth tools are inconsistent."""
+    """Frames handed to :func:`msg_tools.ground_truth.poses_from_frames` lack a pose or have a malformed one."""

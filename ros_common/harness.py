@@ -1,5 +1,5 @@
 """Driving a running ``lcpr`` node from another rclpy node: synthetic places, a frame
-publisher and a listener for its outputs. Used by the tests and benchmarks/node_soak.py.
+publisher and a listener for its outputs. Used by the tests and benchmarks/tools/node_soak.py.
 
 A *place* is a deterministic set of six camera images and one cloud (seeded by its
 number): publishing the same place again at a later stamp is an exact revisit.

@@ -234,3 +234,51 @@ def to_yaml(leaves_: Iterable[Leaf], node_name: str = "/**", header: str = "") -
 
     emit(tree, 2)
     return "\n".join(lines) + "\n"
+
+
+def _markdown_cell(text: str) -> str:
+    """``text`` safe inside a Markdown table cell (GitHub's and Python-Markdown's tables alike)."""
+    for char in "\\`*_[]|":
+        text = text.replace(char, "\\" + char)
+    return text.replace("<", "&lt;").replace(">", "&gt;").replace("\n", " ")
+
+
+def _markdown_number(value: float) -> str:
+    """A range bound as written: 1000000 rather than 1e+06, 0.5 as 0.5."""
+    number = float(value)
+    return str(int(number)) if number.is_integer() and abs(number) < 1e15 else repr(number)
+
+
+def to_markdown(leaves_: Iterable[Leaf]) -> str:
+    """Markdown tables of the leaves (the docs site's parameter pages): one section per group (the name's
+    first part; names without a dot under "Top-level parameters"), in order of first use; each row gives
+    the parameter, its default (written as :func:`to_yaml` writes it), its type, the accepted range or
+    values, whether it can change while the node runs, and its description.
+    """
+    import json
+
+    groups: dict[str, list[Leaf]] = {}
+    for leaf in leaves_:
+        group, dot, _ = leaf.name.partition(".")
+        groups.setdefault(group if dot else "", []).append(leaf)
+
+    lines: list[str] = []
+    for group, members in groups.items():
+        lines += [f"## `{group}.*`" if group else "## Top-level parameters", "",
+                  "| parameter | default | type | range or values | run time | description |",
+                  "|---|---|---|---|---|---|"]
+        for leaf in members:
+            doc = leaf.doc
+            default = json.dumps(list(leaf.default) if leaf.array else leaf.default)
+            default = f"`{default}`" if "`" not in default and "|" not in default else _markdown_cell(default)
+            kind = f"{leaf.kind.__name__}[]" if leaf.array else leaf.kind.__name__
+            if doc.choices:
+                accepted = ", ".join(f"`{choice}`" for choice in doc.choices)
+            elif doc.low is not None and doc.high is not None:
+                accepted = f"{_markdown_number(doc.low)} .. {_markdown_number(doc.high)}"
+            else:
+                accepted = ""
+            lines.append(f"| `{leaf.name}` | {default} | {kind} | {accepted} | {'yes' if doc.dynamic else ''} "
+                         f"| {_markdown_cell(doc.description)} |")
+        lines.append("")
+    return "\n".join(lines)

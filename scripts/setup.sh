@@ -9,11 +9,11 @@ PYTHON=${PYTHON:-python3}
 if "$PYTHON" -c "import rclpy" 2>/dev/null; then
   echo "setup: using the system ROS 2 (rclpy found); .venv sees system site-packages"
   venv_flags=(--system-site-packages)
-  extras="test,posegraph"
+  extras="test,posegraph,odometry,docs"
 else
   echo "setup: no system ROS 2 found; installing the ROS 2 Jazzy wheels from PyPI into .venv"
   venv_flags=()
-  extras="ros,test,posegraph"
+  extras="ros,test,posegraph,odometry,docs"
 fi
 
 # Debian's colcon, for the test that builds the package as ament_python (root + apt only).

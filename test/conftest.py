@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from msg_tools.shared_data import shared_dir
+from lcpr_common.shared_data import shared_dir
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lcpr_core.keyframes import KeyframeConfig
+from lcpr_core.pretrained import BUNDLED, VSEQ2PC_WEIGHTS_NAMES
 from lcpr_core.vseq2pc.detector import SequenceDetectorConfig
 from lcpr_core.vseq2pc.retrieval import SearchConfig
 from lcpr_core.vseq2pc.sequence import OFFSETS, SequenceConfig
@@ -35,15 +36,17 @@ KITTI_LIDAR_T_CAM: tuple[float, ...] = (
 
 @dataclass(frozen=True)
 class Vseq2pcModelConfig:
-    sequence: str = ""  # sequence-model weights (released pickled module or state dict)
-    descriptor: str = ""  # descriptor-model weights ({'state_dict'} or state dict)
-    seed: int = 0  # seeded random weights when both files are "" (testing only)
+    sequence: str = BUNDLED  # sequence-model weights (a file), or bundled / bundled-exact / seeded
+    descriptor: str = BUNDLED  # descriptor-model weights (a file), or the same name as sequence
+    seed: int = 0  # seed of the random weights (seeded; testing only)
     device: str = "cpu"
     threads: int = 0  # torch intra-op threads; 0 = torch's default
 
     def __post_init__(self) -> None:
-        require(bool(self.sequence) == bool(self.descriptor),
-               "model.sequence and model.descriptor: give both weight files, or neither (seeded random weights)")
+        named = [w in VSEQ2PC_WEIGHTS_NAMES for w in (self.sequence, self.descriptor)]
+        require(named[0] == named[1] and (not named[0] or self.sequence == self.descriptor),
+                f"model.sequence={self.sequence!r}, model.descriptor={self.descriptor!r}: give two weight files, "
+                f"or the same name in both ({', '.join(VSEQ2PC_WEIGHTS_NAMES)})")
         require(self.seed >= 0, f"seed={self.seed}; it must be >= 0")
         require(self.threads >= 0, f"threads={self.threads}; it must be >= 0")
         require(bool(self.device), "device is empty; e.g. cpu or cuda:0")

@@ -34,6 +34,7 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
 from lcpr_core.keyframes import KEYFRAME
+from lcpr_core.pretrained import SEEDED, describe_vseq2pc_weights, resolve_vseq2pc_weights
 from lcpr_core.vseq2pc import Vseq2pcMap, Vseq2pcNet
 from lcpr_core.vseq2pc.detector import CameraFrame, LabelledScan, SequenceDetector
 from ros_common.diagnostics import DiagnosticsBuilder, Health
@@ -81,8 +82,9 @@ def build_net(cfg: NodeConfig) -> Vseq2pcNet:
     try:
         if m.threads:
             torch.set_num_threads(m.threads)
-        if m.sequence:
-            return Vseq2pcNet.from_files(sequence=m.sequence, descriptor=m.descriptor, device=m.device)
+        files = resolve_vseq2pc_weights(m.sequence, m.descriptor)
+        if files is not None:
+            return Vseq2pcNet.from_files(sequence=files[0], descriptor=files[1], device=m.device)
         return Vseq2pcNet.seeded(m.seed, device=m.device)
     except Exception as err:  # noqa: BLE001 - files, formats, devices: all refuse the start
         raise ConfigError(f"cannot build the VSeq2PC networks from the model.* parameters: {err}") from err
@@ -103,9 +105,10 @@ class Vseq2pcNode(NodeStats, Node):
         self._closed = False
 
         self.net = build_net(cfg)
-        if not cfg.model.sequence:
-            log.warning(f"model.sequence and model.descriptor are empty: seeded random weights (seed "
-                        f"{cfg.model.seed}), for testing only; matches mean nothing")
+        log.info(f"VSeq2PC: {describe_vseq2pc_weights(cfg.model.sequence, cfg.model.descriptor)}")
+        if cfg.model.sequence == SEEDED:
+            log.warning(f"model.sequence and model.descriptor are seeded: random weights (seed {cfg.model.seed}), "
+                        "for testing only; matches mean nothing")
         if cfg.extrinsics == ExtrinsicsConfig():
             log.warning("extrinsics.* are at their default, KITTI's camera-0-to-Velodyne setup; set them to this "
                         "vehicle's camera-to-LiDAR calibration (extrinsics.xyz and extrinsics.rpy, or "

@@ -36,10 +36,12 @@ DOCS: dict[str, ParamDoc] = {
     "image_topic": ParamDoc("the colour image; only counted in /diagnostics (the network reads depth + labels); "
                             "empty = not subscribed"),
     "odom_topic": ParamDoc("nav_msgs/Odometry: poses at cloud and camera stamps (sequence distances, map poses)"),
-    "model.sequence": ParamDoc("VSeq2PC sequence-model weights; empty (with model.descriptor empty) = seeded "
-                               "random weights, testing only"),
-    "model.descriptor": ParamDoc("VSeq2PC descriptor-model weights; a map file must have been made with them"),
-    "model.seed": ParamDoc("seed of the random weights (both weight files empty)", 0, BIG),
+    "model.sequence": ParamDoc("VSeq2PC sequence-model weights: a file, or bundled (trained on synthetic drives "
+                               "with a depth network's depth), bundled-exact (exact depth: LiDAR, stereo, RGB-D) or "
+                               "seeded (random, testing only), the same name in model.descriptor"),
+    "model.descriptor": ParamDoc("VSeq2PC descriptor-model weights (a file, or model.sequence's name); a map file "
+                                 "must have been made with them"),
+    "model.seed": ParamDoc("seed of the random weights (model.sequence seeded)", 0, BIG),
     "model.device": ParamDoc("torch device, e.g. cpu or cuda:0"),
     "model.threads": ParamDoc("torch intra-op threads; 0 = torch's default", 0, 1024),
     "match.top_k": ParamDoc("candidates per query", 1, 1000, dynamic=True),
@@ -109,3 +111,28 @@ def make_runtime(node: Node, leaves_: Sequence[Leaf], apply: Any) -> RuntimePara
 def describe_all() -> str:
     """The parameter list of ``vseq2pc_node --help``."""
     return describe(all_leaves())
+
+
+MARKDOWN_PAGE = "docs/reference/vseq2pc_node_parameters.md"
+MARKDOWN_HEADER = f"""# vseq2pc_node parameters
+
+Every parameter of `vseq2pc_node` (node name `vseq2pc`) with its default, type, accepted range and
+description, generated from `vseq2pc_ros.config.NodeConfig` and `vseq2pc_ros.params.DOCS`, as
+`config/vseq2pc.yaml` is. "run time" marks the parameters that can change while the node runs
+(`ros2 param set`); the others are read at start. Invalid values are refused with the reason, at
+start (exit 1) and at run time. `vseq2pc_node --help` prints the same list.
+
+Do not edit this page: `test/project/test_docs_site.py` fails when it differs from the dataclasses.
+Regenerate it with
+
+```bash
+.venv/bin/python -c "from vseq2pc_ros.params import markdown_text; print(markdown_text(), end='')" > {MARKDOWN_PAGE}
+```
+"""
+
+
+def markdown_text() -> str:
+    """docs/reference/vseq2pc_node_parameters.md: every parameter as Markdown tables (the docs site's page)."""
+    from ros_common.params import to_markdown
+
+    return f"{MARKDOWN_HEADER}\n{to_markdown(all_leaves())}"

@@ -39,6 +39,7 @@ from ..descriptor_map import DescriptorMap, MapConfig, Match
 from ..errors import InvalidValueError, MapSchemaError
 from ..exclusion import matchable_prefix
 from ..keyframes import KeyframeConfig, keyframe_reason
+from ..pretrained import AUTO_DISTANCE, effective_max_distance, operating_threshold, resolve_weights
 from ..verification import GeometricVerifier, PreparedCloud, Verification, VerifierConfig
 from .describer import Describer, ModelConfig
 from .preprocess.camera import CameraInput
@@ -58,14 +59,19 @@ def _non_negative(obj: object, *names: str) -> None:
 @dataclass(frozen=True)
 class MatchConfig:
     top_k: int = 10  # candidates per query (all of them are verified)
-    max_distance: float = 1.0  # descriptor L2 distance (unit vectors: 0..2) a candidate must be under
+    # descriptor L2 distance (unit vectors: 0..2) a candidate must be under; AUTO_DISTANCE (-1): 1.0 with
+    # verification (every top-k candidate is checked), else the weights file's operating threshold (bundled 0.70)
+    max_distance: float = AUTO_DISTANCE
     exclude_recent_s: float = 30.0  # this session's keyframes newer than this are not matched
     exclude_recent_count: int = 0  # and neither are the last N keyframes (0 = off)
 
     def __post_init__(self) -> None:
         if self.top_k < 1:
             raise InvalidValueError(f"match.top_k={self.top_k}; it must be at least 1")
-        _non_negative(self, "max_distance", "exclude_recent_s", "exclude_recent_count")
+        if self.max_distance != AUTO_DISTANCE and not self.max_distance >= 0:
+            raise InvalidValueError(f"match.max_distance={self.max_distance!r}; accepted: a distance >= 0, or "
+                                    f"{AUTO_DISTANCE} for the weights file's operating threshold")
+        _non_negative(self, "exclude_recent_s", "exclude_recent_count")
 
 
 @dataclass(frozen=True)
@@ -160,6 +166,7 @@ class LoopDetector:
         self._last_position: np.ndarray | None = None
         self.verifier = GeometricVerifier(config.verify)
         self._prepared: OrderedDict[int, PreparedCloud] = OrderedDict()
+        self.weights_threshold = operating_threshold(resolve_weights(config.model.weights))  # the file's, or None
 
     def _checked(self, prior: DescriptorMap) -> DescriptorMap:
         """A prior map whose descriptors this describer can search: made by the same weights (whitening, turn
@@ -179,6 +186,12 @@ class LoopDetector:
             else:
                 prior.weights_id = ours
         return prior
+
+    @property
+    def max_distance(self) -> float:
+        """``match.max_distance`` as used: AUTO_DISTANCE resolved by ``pretrained.effective_max_distance``."""
+        return effective_max_distance(self.config.match.max_distance, self.weights_threshold,
+                                      verified=self.config.verify.enabled)
 
     @property
     def session_keyframes(self) -> int:
@@ -344,7 +357,7 @@ class LoopDetector:
             return []
         # one (D,) descriptor: search returns one list of matches
         hits = cast(list[Match], self.map.search(desc, k=min(cfg.top_k + excluded, len(self.map)),
-                                                 max_distance=cfg.max_distance))
+                                                 max_distance=self.max_distance))
         newest_ids = set(self.map.ids[eligible:].tolist())
         return [h for h in hits if h.id not in newest_ids][: cfg.top_k]
 

@@ -13,9 +13,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from msg_tools.shared_data import shared_path
+from lcpr_common.shared_data import shared_path
 
 from ..points import rotate_z
+from ..pretrained import SEEDED, command_weights, describe_weights
 from ..timing import median_seconds
 from .describer import Describer, ModelConfig
 from .preprocess import NUSCENES_CAMERAS, range_image
@@ -26,7 +27,7 @@ log = logging.getLogger("lcpr_demo")
 
 
 def default_data_dir() -> Path:
-    """../shared/data/nuscenes_sample (see msg_tools.shared_data for where ../shared is looked for)."""
+    """../shared/data/nuscenes_sample (see lcpr_common.shared_data for where ../shared is looked for)."""
     return shared_path("data", "nuscenes_sample")
 
 
@@ -37,7 +38,9 @@ def cosine(a: np.ndarray, b: np.ndarray) -> float:
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=None, help="folder with one nuScenes keyframe")
-    parser.add_argument("--weights", default="", help="released LCPR checkpoint or state dict")
+    parser.add_argument("--weights", default="",
+                        help="LCPR checkpoint or state dict (default: the bundled trained weights)")
+    parser.add_argument("--seeded", action="store_true", help="random weights (testing only), as --weights seeded")
     parser.add_argument("--imagenet", default="", help="torchvision resnet18 state dict for initialisation")
     parser.add_argument("--seed", type=int, default=0, help="seed of the random initialisation")
     parser.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
@@ -56,14 +59,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"lcpr_demo: {err}; pass --data DIR", file=sys.stderr)
         return 2
     images, points = files.read()
-    config = ModelConfig(weights=args.weights, imagenet=args.imagenet, seed=args.seed, threads=args.threads)
+    weights = SEEDED if args.seeded else command_weights(args.weights, imagenet=args.imagenet)
+    config = ModelConfig(weights=weights, imagenet=args.imagenet, seed=args.seed, threads=args.threads)
     fp32 = Describer(config)
     bf16 = Describer(dataclasses.replace(config, precision="bf16"), model=fp32.model)
     pil = Describer(dataclasses.replace(config, decode="pil"), model=fp32.model)  # the released pipeline
-    weights = args.weights or args.imagenet or f"seeded random initialisation (seed {args.seed}), NOT a trained model"
+    loaded = fp32.config.weights
+    described = (describe_weights(loaded) if loaded or not args.imagenet
+                 else f"ImageNet ResNet blocks from {args.imagenet}, the rest random: NOT a trained model")
 
     print(f"\nLCPR descriptor demo on {data}")
-    print(f"  weights: {weights}")
+    print(f"  weights: {described}")
     print(f"  cloud: {len(points)} points; cameras: {', '.join(NUSCENES_CAMERAS)} ({len(images)} JPEGs)")
 
     cams, ranges = fp32.inputs(images, points)
@@ -93,9 +99,9 @@ def main(argv: list[str] | None = None) -> int:
     figure = args.out / "demo_keyframe.png"
     plot_inputs(cams[0], ranges[0, 0], figure)
     print(f"\nFigure of the network inputs: {figure}")
-    if not (args.weights or args.imagenet):
+    if not loaded:
         print("Note: with random weights the similarities show the network's structure (yaw invariance), "
-              "not place recognition; pass --weights for a trained checkpoint.")
+              "not place recognition; drop --seeded for the trained weights.")
     return 0
 
 

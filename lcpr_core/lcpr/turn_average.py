@@ -12,7 +12,7 @@ averaged and normalised again. It costs six network passes per frame, run as one
 It is a property of a weights file, like its whitening: a checkpoint with ``'turn_average':
 True`` is described this way by :class:`lcpr_core.lcpr.Describer` on every inference path
 (``model.turn_average: false`` turns it off), and maps record it through ``weights_id``.
-``benchmarks/lcpr_turn_average.py`` chose it for the bundled weights on the validation cities.
+``benchmarks/recipes/lcpr_turn_average.py`` chose it for the bundled weights on the validation cities.
 """
 from __future__ import annotations
 

@@ -2,7 +2,7 @@
 
 The network's 256-d descriptors use their dimensions very unevenly: on the bundled weights' 12
 training cities the first 16 principal directions hold 86 % of the variance and the last 100
-almost none (``benchmarks/lcpr_whitening.py`` prints both). Distances are then ruled by a few
+almost none (``benchmarks/recipes/lcpr_whitening.py`` prints both). Distances are then ruled by a few
 directions that mostly separate cities, not places. Whitening (NetVLAD's post-processing,
 Arandjelovic et al. 2016) centres the descriptors on the training mean, keeps the ``dims``
 strongest principal directions and scales each by ``eigenvalue ** -power`` (0.5 = every kept

@@ -44,7 +44,7 @@ class VerifierConfig:
     best of them (largest overlap) again on the compact clouds,
     unless its overlap at the coarse pose is already under
     ``early_reject * min_fitness`` ("low overlap" at once: the common case of a wrong
-    candidate; benchmarks/verify_tune.py chose it to turn away at most 2 % of validation true pairs);
+    candidate; benchmarks/recipes/verify_tune.py chose it to turn away at most 2 % of validation true pairs);
     the result is accepted when all of:
 
     - the overlap (share of each cloud's points whose nearest neighbour in the other
@@ -57,8 +57,8 @@ class VerifierConfig:
       information of the inliers (translation and rotation blocks, normalised; 0..1/3) is
       at least ``min_constraint`` (a plane, a corridor, a sphere shell give ~0).
 
-    Thresholds default to values chosen on validation drives (see benchmarks/verify_tune.py),
-    never on the drives the README reports as held out.
+    Thresholds default to values chosen on validation drives (see benchmarks/recipes/verify_tune.py),
+    never on the drives docs/verification.md reports as held out.
     """
 
     enabled: bool = True
@@ -83,7 +83,7 @@ class VerifierConfig:
     # acceptance
     inlier_distance: float = 0.6  # m, nearest-neighbour reach of an inlier
     plane_distance: float = 0.1  # m, its distance to the neighbour's local plane
-    min_fitness: float = 0.45  # benchmarks/verify_tune.py: <= 0.1 % of validation false pairs pass
+    min_fitness: float = 0.45  # benchmarks/recipes/verify_tune.py: <= 0.1 % of validation false pairs pass
     max_rmse: float = 0.2  # m
     max_correction_m: float = 8.0  # sanity bounds: the initial guess is within ~1 m and a few degrees
     max_correction_deg: float = 30.0

@@ -12,7 +12,7 @@ frame as in geometry_msgs/PoseWithCovariance: ``(Exp(d_rot) R, t + d_t)``.
 translation) child-frame tangent.
 
 Registration is small_gicp's (GICP on voxel-downsampled clouds, per-point covariances
-from 10 neighbours): see the README for the comparison with kiss-icp that chose it.
+from 10 neighbours): see docs/verification.md for the comparison with kiss-icp that chose it.
 """
 from __future__ import annotations
 
@@ -25,8 +25,8 @@ import numpy as np
 import small_gicp
 
 from ..errors import VerificationError
+from ..geometry import rotation_angle_deg, transform_points
 from ..points import finite_xyz
-from ..posegraph import rotation_angle_deg
 from .clouds import compact_cloud
 from .config import VerifierConfig
 from .initial import BevMatcher, Hypothesis, polar_context, yaw_candidates
@@ -214,7 +214,7 @@ class GeometricVerifier:
         T = np.asarray(fine.T_target_source, np.float64)
         fitness, rmse, constraint = 0.0, math.inf, 0.0
         if np.isfinite(T).all():
-            q_in_m = _transform(query.xyz, T)
+            q_in_m = transform_points(query.xyz, T)
             idx, near = _near(q_in_m, match, cfg)  # one search: the overlap and the constraint share it
             fitness, rmse = self._overlap(query, match, T, query_side=(q_in_m, idx, near))
             constraint = _constraint(q_in_m[near], match.normals[idx[near]])
@@ -234,9 +234,9 @@ class GeometricVerifier:
         """
         cfg = self.config
         if query_side is None:
-            q_in_m = _transform(query.xyz[::stride], T)
+            q_in_m = transform_points(query.xyz[::stride], T)
             query_side = (q_in_m, *_near(q_in_m, match, cfg))
-        m_in_q = _transform(match.xyz[::stride], np.linalg.inv(T))
+        m_in_q = transform_points(match.xyz[::stride], np.linalg.inv(T))
         share_q, d_q = _inliers(*query_side, match, cfg)
         share_m, _ = _inliers(m_in_q, *_near(m_in_q, query, cfg), query, cfg)
         rmse = float(np.sqrt(np.mean(d_q ** 2))) if len(d_q) else math.inf
@@ -281,10 +281,6 @@ class GeometricVerifier:
         sigma2 = np.diag(cov).copy()
         bump = np.maximum(floor - sigma2, 0.0)
         return cov + np.diag(bump)
-
-
-def _transform(points: np.ndarray, T: np.ndarray) -> np.ndarray:
-    return points @ T[:3, :3].T + T[:3, 3]
 
 
 def _near(points: np.ndarray, target: PreparedCloud, cfg: VerifierConfig) -> tuple[np.ndarray, np.ndarray]:

@@ -12,8 +12,9 @@
 Modules: detector (SequenceDetector: what vseq2pc_node runs), checkpoint (released files,
 including the pickled sequence module, loaded without running code), net (the two models
 together), retrieval (the scan database, search, npz files), sequence (online query
-assembly), dataset (bag -> feature cache, vseq2pc_cache), pairs (labels and pair sampling),
-initialisation (the training initialisation), training/ (vseq2pc_train), evaluate (vseq2pc_eval).
+assembly), dataset (the feature cache; ``vseq2pc_cache`` reads one from a bag:
+:mod:`lcpr_offline.vseq2pc_cache`), pairs (labels and pair sampling), initialisation (the training
+initialisation), training/ (vseq2pc_train), evaluate (vseq2pc_eval).
 """
 from .checkpoint import (
     load_descriptor_state_dict,

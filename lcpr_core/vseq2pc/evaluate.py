@@ -8,8 +8,8 @@
   (the exact batched head of :class:`ScanDatabase`); Recall@N counts loop queries with a
   scan within 5 m among the N best.
 
-Methods: the trained weights, a seeded untrained initialisation (``--untrained``),
-with ``--single-frame`` each network fed the query frame four times instead of a
+Methods: the trained weights (the bundled set without weight files), the seeded untrained
+initialisation (``--untrained``), with ``--single-frame`` each network fed the query frame four times instead of a
 sequence, with ``--sequence-lengths L ...`` the first L frames of each sequence (the last
 repeated), and with ``--feature-match`` a reference without a network (the query frame's
 camera feature against each scan's 8 windows, mean absolute difference). Writes
@@ -34,6 +34,7 @@ from ..atomic import atomic_path, save_figure
 from ..errors import InvalidValueError
 from ..evaluation import pr_sweep, ranked_protocol
 from ..metrics import PRResult
+from ..pretrained import BUNDLED, VSEQ2PC_DEPTH_KINDS, describe_vseq2pc_weights, resolve_vseq2pc_weights
 from .dataset import FeatureCache, summary
 from .net import Vseq2pcNet, slice_tensor
 from .pairs import POSITIVE_RADIUS, evaluation_pairs, planar_distances
@@ -251,7 +252,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sequence-weights", default=None, help="sequence model file (released pickled module or ours)")
     p.add_argument("--descriptor-weights", default=None, help="descriptor model file ({'state_dict'} or plain)")
     p.add_argument("--name", default="trained", help="name of the weights' column")
-    p.add_argument("--untrained", action="store_true", help="also evaluate a seeded untrained initialisation")
+    p.add_argument("--bundled-depth", choices=sorted(VSEQ2PC_DEPTH_KINDS), default="network",
+                   help="without weight files: the bundled set for this kind of depth (default network)")
+    p.add_argument("--untrained", "--seeded", action="store_true",
+                   help="also evaluate the seeded untrained initialisation (random weights)")
     p.add_argument("--single-frame", action="store_true", help="also feed each network the query frame 4 times")
     p.add_argument("--sequence-lengths", type=int, nargs="+", default=[], metavar="L",
                    help="also evaluate each network on the first L frames of each sequence (1..3), the last repeated")
@@ -275,10 +279,17 @@ def _networks(args: argparse.Namespace) -> list[tuple[str, Vseq2pcNet]]:
         desc_file = desc_file or str(Path(args.weights_dir) / f"{prefix}descriptor_model.pth")
     if (seq_file is None) != (desc_file is None):
         raise InvalidValueError("give both --sequence-weights and --descriptor-weights (or --weights-dir)")
-    if args.untrained or seq_file is None:
+    if args.untrained:
         nets.append((f"untrained (seed {args.init_seed})", Vseq2pcNet.seeded(args.init_seed)))
-    if seq_file is not None:
-        nets.append((args.name, Vseq2pcNet.from_files(sequence=seq_file, descriptor=desc_file)))
+    if seq_file is None:  # the bundled set for the depth asked for
+        name = BUNDLED if args.bundled_depth == "network" else f"{BUNDLED}-exact"
+        files = resolve_vseq2pc_weights(name, name)
+        assert files is not None  # a bundled name always resolves to files (or raises)
+        seq_file, desc_file = files
+        print(f"vseq2pc_eval: {describe_vseq2pc_weights(name, name)}", file=sys.stderr)
+        if args.name == "trained":
+            args.name = name
+    nets.append((args.name, Vseq2pcNet.from_files(sequence=seq_file, descriptor=desc_file)))
     return nets
 
 

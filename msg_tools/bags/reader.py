@@ -22,12 +22,13 @@ from typing import Any
 
 import numpy as np
 
+from lcpr_common.progress import progress_bar
+
 from ..compressed import compressed_bytes, compressed_to_array
 from ..errors import BagError
 from ..frames import CameraImage, SensorFrame, Topics
 from ..image import depth_to_metres, image_to_array, image_to_rgb
 from ..pointcloud import pointcloud2_to_array
-from ..progress import progress_bar
 from ..transforms import odometry_to_pose
 from ..types import NS_PER_S, typestore
 from .cdr import header_stamp_ns

@@ -28,13 +28,14 @@ from pathlib import Path
 
 import numpy as np
 
+from lcpr_common.progress import progress_iter
+
 from ..bags import BagWriter
 from ..bags.writer import label_image
 from ..compressed import decode_image_bytes
 from ..errors import DatasetError, MsgToolsError
 from ..frames import KITTI_TOPICS, CameraModel, Topics
 from ..geometry import invert_pose
-from ..progress import progress_iter
 from ..types import Stamp, sec_to_stamp
 from .cli import add_output_options, print_summary
 from .kitti_files import KittiSequence, read_labels, read_scan

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..errors import DatasetError
 from ..geometry import check_pose, invert_pose
-from .float32_bin import KITTI_COLUMNS, read_float32_rows
+from .point_files import KITTI_COLUMNS, read_points
 
 LABEL_DTYPE = np.dtype("<u4")
 
@@ -111,7 +111,7 @@ def read_camera_poses(path: Path) -> np.ndarray:
 
 def read_scan(path: Path) -> np.ndarray:
     """velodyne/*.bin -> N x 4 float32 (x, y, z, reflectance)."""
-    return read_float32_rows(path, columns=KITTI_COLUMNS)
+    return read_points(path, columns=KITTI_COLUMNS)
 
 
 def read_labels(path: Path, points: int) -> np.ndarray:

@@ -25,16 +25,17 @@ from pathlib import Path
 import numpy as np
 from PIL import Image as PILImage
 
+from lcpr_common.progress import progress_iter
+
 from ..bags import BagWriter
 from ..compressed import compressed_jpeg_bytes
 from ..errors import DatasetError, MsgToolsError
 from ..frames import NUSCENES_CAMERAS, NUSCENES_TOPICS, CameraModel, Topics
 from ..geometry import pose_from_parts
-from ..progress import progress_iter
 from ..types import Stamp
 from .cli import add_output_options, print_summary
-from .float32_bin import NUSCENES_COLUMNS, read_float32_rows
 from .nuscenes_tables import NuScenesTables, Record
+from .point_files import NUSCENES_COLUMNS, read_points
 
 LIDAR = "LIDAR_TOP"
 DESCRIPTION = "Convert nuScenes v1.0 keyframes (six cameras, LIDAR_TOP, ego poses, calibration) to a rosbag2."
@@ -67,7 +68,7 @@ def _pose(record: Record) -> np.ndarray:
 
 def read_lidar(path: Path) -> np.ndarray:
     """``*.pcd.bin`` (float32 x, y, z, intensity, ring) -> structured cloud with ring as uint16."""
-    points = read_float32_rows(path, columns=NUSCENES_COLUMNS)
+    points = read_points(path, columns=NUSCENES_COLUMNS)
     ring = points[:, 4]
     if np.any(ring != np.round(ring)) or np.any(ring < 0) or np.any(ring > np.iinfo(np.uint16).max):
         raise DatasetError(f"{path} has ring values that are not whole numbers in [0, 65535]")

@@ -24,7 +24,7 @@ def decode_image(data: bytes | bytearray | memoryview, *, draft_size: tuple[int,
 
     draft_size=(width, height) lets the JPEG decoder scale by 1/2, 1/4 or 1/8 while
     decoding (keeping at least that size): faster, but the pixels differ from a full
-    decode followed by the resize (``benchmarks/preprocess.py`` measures the effect).
+    decode followed by the resize (``benchmarks/tools/keyframe_pipeline.py`` measures the stages).
     """
     try:
         img = Image.open(io.BytesIO(bytes(data)))

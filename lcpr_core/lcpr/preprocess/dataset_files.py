@@ -8,18 +8,17 @@ from pathlib import Path
 
 import numpy as np
 
-from msg_tools.convert.float32_bin import KITTI_COLUMNS, NUSCENES_COLUMNS, read_float32_rows
-from msg_tools.errors import DatasetError
+from lcpr_common.point_files import KITTI_COLUMNS, NUSCENES_COLUMNS, PointFileError, read_float32_rows
 
 from ...errors import DatasetFileError, InputShapeError
 from .camera import NUSCENES_CAMERAS
 
 
 def read_float32_points(path: str | os.PathLike[str], *, columns: tuple[str, ...]) -> np.ndarray:
-    """A flat float32 file -> N x len(columns) array (msg_tools' reader; its size error as InputShapeError)."""
+    """A flat float32 file -> N x len(columns) array (lcpr_common's reader; its size error as InputShapeError)."""
     try:
         return read_float32_rows(path, columns=columns)
-    except DatasetError as err:
+    except PointFileError as err:
         raise InputShapeError(str(err)) from err
 
 

@@ -5,7 +5,7 @@ can scale by 1/2, 1/4 or 1/8 while decoding (inside the inverse DCT), which skip
 work. :func:`decode_scaled` does that through OpenCV's reduced-size decode and keeps the largest
 reduction that still leaves at least the target size; the antialiased resize that follows
 (:mod:`.cameras`) makes the rest of the way. The descriptor stays within cosine 0.9999 of the
-released PIL pipeline on the real nuScenes keyframes (``test/test_camera_decode.py``).
+released PIL pipeline on the real nuScenes keyframes (``test/lcpr_core/lcpr/test_camera_decode.py``).
 
 Both decoders check the bytes first: a JPEG that does not end with its end-of-image marker is
 refused as truncated, as PIL refuses it, instead of decoding to a grey lower half as libjpeg does.

@@ -83,7 +83,7 @@ class OpenVinoBackend:
     The inference precision is pinned to f32: on CPUs with bf16 support OpenVINO's default runs
     every unquantised layer in bf16, which is not the graph that was checked. The int8 QDQ pairs
     still run as int8 convolutions (VNNI / AMX), which is why this is the faster int8 runtime on
-    the Xeons measured (README, "Inference paths").
+    the Xeons measured (docs/studies/inference_paths.md).
     """
 
     def __init__(self, path: str | os.PathLike[str], *, threads: int = 0, name: str = "int8") -> None:

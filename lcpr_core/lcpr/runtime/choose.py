@@ -36,7 +36,7 @@ from .onnx_cache import exported_graph, graph_key, onnx_path
 if TYPE_CHECKING:
     from pathlib import Path
 
-    from ..describer import ModelConfig
+    from ..config import ModelConfig
     from ..models import LCPR
 
 log = logging.getLogger(__name__)

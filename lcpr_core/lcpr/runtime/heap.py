@@ -5,7 +5,7 @@ frames every per-frame buffer up to 32 MiB comes from the heap instead. In the n
 Runtime's buffers and geometric verification's clouds and trees (long-lived prepared clouds
 among them) then interleave on that heap, and its free holes are never returned: at the
 released size the node's RSS grew by 580 MB in 3 minutes with ``model.precision: onnx``
-(``benchmarks/node_soak.py``; README "Inference paths"). Fixing the threshold (which also stops
+(``benchmarks/tools/node_soak.py``; docs/studies/inference_paths.md). Fixing the threshold (which also stops
 its adjustment) sends those buffers to mmap, where freeing returns them to the system.
 
 :func:`fix_mmap_threshold` does that once per process, only with glibc, and never where the
@@ -24,8 +24,8 @@ from ...errors import RuntimeSetupError
 
 log = logging.getLogger(__name__)
 
-#: Blocks at least this large are mmapped (bytes). Chosen with node_soak at the released size (README
-#: "Inference paths"): 4 MiB let RSS keep growing, 128 KiB cost 20 % of the model time, 1 MiB neither.
+#: Blocks at least this large are mmapped (bytes). Chosen with node_soak at the released size
+#: (docs/studies/inference_paths.md): 4 MiB let RSS keep growing, 128 KiB cost 20 % of the model time, 1 MiB neither.
 MMAP_THRESHOLD = 1024 * 1024
 USER_VARIABLE = "MALLOC_MMAP_THRESHOLD_"
 _M_MMAP_THRESHOLD = -3  # glibc <malloc.h>

@@ -23,7 +23,7 @@ import torch
 from ...errors import RuntimeSetupError
 
 if TYPE_CHECKING:
-    from ..describer import ModelConfig
+    from ..config import ModelConfig
     from ..models import LCPR
 
 log = logging.getLogger(__name__)

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from msg_tools.progress import progress_bar
+from lcpr_common.progress import progress_bar
 
 from ...atomic import atomic_path, save_torch
 from ...errors import CheckpointError, InvalidValueError

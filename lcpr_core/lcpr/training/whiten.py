@@ -2,14 +2,12 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
 
 import numpy as np
 import torch
 
 from ..describer import ModelConfig, build_model
 from ..whitening import DEFAULT_DIMS, DEFAULT_POWER, Whitening, fit_whitening, write_whitened
-from .cache import build_cache
 from .config import checkpoint_inputs
 from .dataset import TrainingData
 from .train import describe_samples
@@ -18,22 +16,19 @@ from .train import describe_samples
 def whiten_checkpoint(
     checkpoint: str | os.PathLike[str],
     target: str | os.PathLike[str],
-    bags: Sequence[str | os.PathLike[str]],
+    data: TrainingData,
     *,
-    cache: str | os.PathLike[str],
     power: float = DEFAULT_POWER,
     dims: int = DEFAULT_DIMS,
     batch: int = 16,
     device: str = "cpu",
     progress: bool = True,
 ) -> Whitening:
-    """Describe every frame of ``bags`` with ``checkpoint``, fit the whitening and write ``target``.
+    """Describe every frame of ``data`` with ``checkpoint``, fit the whitening and write ``target``.
 
-    Fit it on the training bags, never on the cities it is evaluated on. The cache is built (or
-    reused) at the checkpoint's own input sizes.
+    Fit it on the training bags' frames, never on the cities it is evaluated on, preprocessed at the
+    checkpoint's own input sizes (:func:`~.config.checkpoint_inputs`: the cache to build).
     """
-    inputs = checkpoint_inputs(checkpoint)
-    data = TrainingData.from_cache(build_cache(bags, cache, inputs=inputs, progress=progress))
     model = build_model(ModelConfig(weights=os.fspath(checkpoint), precision="fp32")).to(torch.device(device))
     desc = describe_samples(model, data, np.arange(len(data)), batch=batch, device=device, progress=progress,
                             desc="describe for whitening")

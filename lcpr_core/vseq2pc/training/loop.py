@@ -10,7 +10,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from msg_tools.progress import progress_bar
+from lcpr_common.progress import progress_bar
 
 from ...evaluation import pr_sweep
 from ..models import DescriptorModel, SequenceModel

@@ -29,7 +29,7 @@ earlier bundled weights: validation Recall@1 0.11 in eval mode, 0.22 with batch 
 ``mixed_batch_norm`` passes both kinds through the tower together, so training sees what
 eval sees. ``ranking_weight`` adds a ranking term (each query's positives above its
 negatives, a softmax over the batch's max-slice logits), which is what Recall@1 asks for;
-benchmarks/vseq2pc_loss_study.sh measures both on the validation drive.
+benchmarks/studies/vseq2pc_loss_study.sh measures both on the validation drive.
 
 Several drives train together (``--cache A.npz B.npz ...``): their frames are laid side by
 side ``DRIVE_SPACING_M`` apart, so a pair across drives is always a negative.

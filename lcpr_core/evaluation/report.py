@@ -1,0 +1,178 @@
+"""The evaluation report: its JSON file and the console tables (both protocols, latency, verified loops)."""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..atomic import atomic_path
+from .latency import LatencyStats
+from .protocols import GroundTruth, OperatingPoint, ProtocolResult
+from .results import MethodResult, VerifiedLoops
+
+
+@dataclass
+class EvaluationReport:
+    source: str  # what was evaluated (a bag path)
+    settings: dict[str, Any]
+    counts: dict[str, Any]  # frames, keyframes, reasons, degraded, reader statistics
+    ground_truth: GroundTruth
+    methods: list[MethodResult]
+    wall_time_s: float = 0.0
+    setup_time_s: float = 0.0  # of wall_time_s: building the detector (loading, auto's measurement, graph capture)
+    verified: VerifiedLoops | None = None  # LCPR + verification; None when verification was off
+
+    def to_dict(self) -> dict[str, Any]:
+        return _jsonable({
+            "source": self.source, "settings": self.settings, "counts": self.counts,
+            "ground_truth": self.ground_truth.summary(), "wall_time_s": self.wall_time_s,
+            "methods": [m.to_dict() for m in self.methods],
+            "verified": None if self.verified is None else self.verified.to_dict(),
+        })
+
+    def write_json(self, path: str | os.PathLike[str]) -> None:
+        """Write the report (atomically: readers see the old file or the whole new one)."""
+        text = json.dumps(self.to_dict(), indent=1, allow_nan=False)
+        with atomic_path(path) as tmp:
+            tmp.write_text(text + "\n", encoding="utf-8")
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, Mapping):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return _jsonable(dataclasses.asdict(value))
+    if isinstance(value, np.ndarray):
+        return [_jsonable(v) for v in value.tolist()]
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, (np.bool_, bool)):
+        return bool(value)
+    if isinstance(value, (np.integer, int)):
+        return int(value)
+    if isinstance(value, (np.floating, float)):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    return value
+
+
+def _fmt(value: float | None, spec: str = ".3f") -> str:
+    return "-" if value is None else format(value, spec)
+
+
+def summary_table(report: EvaluationReport, *, n_values: Sequence[int] = (1, 5, 10)) -> str:
+    """A few lines for the console: both protocols and latency, one column per method."""
+    gt = report.ground_truth.summary()
+    c = report.counts
+    lines = [
+        f"{c.get('frames', '?')} frames, {c.get('keyframes', '?')} keyframes ({c.get('degraded_keyframes', 0)} with a "
+        f"missing camera), {c.get('dropped_clouds', 0)} clouds dropped by the reader; "
+        f"{gt['queries_with_true_loop']} keyframes with a true loop (<= {gt['radius']:g} m, >= "
+        f"{gt['exclude_recent_s']:g} s older); path {gt['path_length_m']:.0f} m",
+    ]
+    if gt["split_time"] is None:
+        lines.append("database/query: no revisit after more than 2 x radius of driving; protocol not applicable")
+    else:
+        lines.append(f"database/query: {gt['database_size']} database keyframes (first pass), "
+                     f"{gt['query_count']} queries from {gt['split_offset_s']:.1f} s on")
+    ns = "/".join(f"@{n}" for n in n_values)
+    width = max(14, *(len(m.name) + 2 for m in report.methods))
+    head = f"{'':<34}" + "".join(f"{m.name:>{width + 8}}" for m in report.methods)
+    rows = [head]
+
+    def row(label: str, cell: Callable[[MethodResult], str]) -> None:
+        rows.append(f"{label:<34}" + "".join(f"{cell(m):>{width + 8}}" for m in report.methods))
+
+    def recalls(p: ProtocolResult | None) -> str:
+        if p is None or not p.recall_at:
+            return "-"
+        return " / ".join(_fmt(p.recall_at.get(n), ".2f") for n in n_values)
+
+    row(f"online     Recall{ns}", lambda m: recalls(m.online))
+    row("online     max F1 (R at P=1)",
+        lambda m: f"{_fmt(m.online.max_f1)} ({_fmt(m.online.recall_at_full_precision, '.2f')})")
+    row("online     TP/FP at threshold", lambda m: _op(m.online.operating_point))
+    row(f"db/query   Recall{ns}", lambda m: recalls(m.database_query))
+    row("db/query   max F1", lambda m: _fmt(None if m.database_query is None else m.database_query.max_f1))
+    row("latency    p50 / p90 ms (total)", lambda m: _lat(m.latency.get("total")))
+    lines.append("\n".join(rows))
+    if report.verified is not None:
+        lines.append(verification_table(report))
+    return "\n".join(lines)
+
+
+def throughput_line(report: EvaluationReport) -> str:
+    """Keyframes per second of the whole run and where a keyframe's time went (the first method's stages)."""
+    keyframes = int(report.counts.get("keyframes", 0))
+    if not keyframes or report.wall_time_s <= 0:
+        return "throughput: no keyframe"
+    stages = {k: v for k, v in report.methods[0].latency.items() if k != "total"} if report.methods else {}
+    staged = sum(v.mean_ms for v in stages.values()) * keyframes / 1e3
+    run = report.wall_time_s - report.setup_time_s
+    parts = ", ".join(f"{k} {v.mean_ms:.2f}" for k, v in stages.items())
+    return (f"throughput: {keyframes} keyframes in {run:.1f} s = {keyframes / run:.1f} keyframes/s (after "
+            f"{report.setup_time_s:.1f} s of setup); per keyframe (mean ms) {parts}; the other {run - staged:.1f} s: "
+            "reading the bag, frames that were not keyframes, the evaluation")
+
+
+def _op(point: OperatingPoint | None) -> str:
+    if point is None:
+        return "-"
+    where = "max F1 " if point.source == "max F1" else ""
+    return f"{point.true_positives}/{point.false_positives} @ {where}{point.threshold:.3g}"
+
+
+def _lat(stats: LatencyStats | None) -> str:
+    return "-" if stats is None else f"{stats.p50_ms:.1f} / {stats.p90_ms:.1f}"
+
+
+def verification_table(report: EvaluationReport) -> str:
+    """The verified loops beside the retrieval LCPR's online numbers, and the pose-graph line."""
+    v = report.verified
+    if v is None:
+        return ""
+    retrieval = next((m for m in report.methods if m.name == "LCPR"), report.methods[0] if report.methods else None)
+    left = "LCPR (retrieval)" if retrieval is None else f"{retrieval.name} (retrieval)"
+    width = max(22, len(v.name) + 2, len(left) + 2)
+    s = v.score
+    out = [f"{'':<34}{left:>{width}}{v.name:>{width}}"]
+
+    def row(label: str, a: str, b: str) -> None:
+        out.append(f"{label:<34}{a:>{width}}{b:>{width}}")
+
+    point = None if retrieval is None else retrieval.online.operating_point
+    row("online     loops (correct/wrong)", "-" if point is None else
+        f"{point.true_positives + point.false_positives} ({_op(point)})",
+        f"{s.loops} ({s.correct}/{s.loops - s.correct})")
+    row("online     precision / recall",
+        "-" if point is None else f"{_fmt(point.precision, '.2f')} / {_fmt(point.recall, '.2f')}",
+        f"{_fmt(s.precision, '.2f')} / {_fmt(s.recall, '.2f')}")
+    row("online     max F1 (R at P=1)",
+        "-" if retrieval is None else
+        f"{_fmt(retrieval.online.max_f1)} ({_fmt(retrieval.online.recall_at_full_precision, '.2f')})",
+        f"{_fmt(v.max_f1)} ({_fmt(v.recall_at_full_precision, '.2f')})")
+    row("           swept over", "descriptor distance", "fitness")
+    row("loop pose error median m / deg", "-", _err(s.trans_err_median, s.yaw_err_median))
+    row("loop pose error p95    m / deg", "-", _err(s.trans_err_p95, s.yaw_err_p95))
+    verify = None if retrieval is None else retrieval.latency.get("verify")
+    row("latency    p50 / p90 ms (verify)", "-", _lat(verify))
+    g = v.pose_graph
+    if g is not None:
+        out.append(f"pose graph (seeded odometry drift, {g.loops_used} verified loops as between-factors, {g.robust} "
+                   f"kernel): ATE {g.ate_drifted:.2f} m drifted -> {g.ate_corrected:.2f} m optimised ({g.ratio:.0%})")
+    elif v.pose_graph_note:
+        out.append(f"pose graph: {v.pose_graph_note}")
+    if v.base_T_lidar_source:
+        out.append(f"loop poses vs ground truth: base_T_lidar from {v.base_T_lidar_source}")
+    return "\n".join(out)
+
+
+def _err(metres: float | None, degrees: float | None) -> str:
+    return "-" if metres is None or degrees is None else f"{metres:.3f} / {degrees:.2f}"

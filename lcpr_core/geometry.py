@@ -1,0 +1,81 @@
+"""SE(3) and rotation math on numpy arrays, the one home for what verification, the pose graph and the
+evaluation compute on poses.
+
+Poses are 4 x 4 homogeneous matrices ``a_T_b`` (frame ``b`` expressed in frame ``a``), rotations
+3 x 3 matrices, rotation vectors (3,) in radians. Nothing here checks its input: the callers
+validate with their own errors (:mod:`lcpr_core.posegraph`, :mod:`lcpr_core.verification`) and
+then compute here.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def invert(pose: np.ndarray) -> np.ndarray:
+    """The inverse of a rigid (4, 4) transform: ``(R^T, -R^T t)``."""
+    m = np.asarray(pose, np.float64)
+    out = np.eye(4)
+    out[:3, :3] = m[:3, :3].T
+    out[:3, 3] = -m[:3, :3].T @ m[:3, 3]
+    return out
+
+
+def relative(a_T_x: np.ndarray, a_T_y: np.ndarray) -> np.ndarray:
+    """``x_T_y = inv(a_T_x) @ a_T_y``: pose ``y`` seen from pose ``x`` (both given in frame ``a``)."""
+    return invert(a_T_x) @ np.asarray(a_T_y, np.float64)
+
+
+def conjugate(a_T_b: np.ndarray, b_pose: np.ndarray) -> np.ndarray:
+    """A relative pose between two ``b`` frames as the one between their ``a`` frames: ``a_T_b X inv(a_T_b)``."""
+    ext = np.asarray(a_T_b, np.float64)
+    return ext @ np.asarray(b_pose, np.float64) @ invert(ext)
+
+
+def transform_points(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """(N, 3) points moved by ``pose`` (4, 4): ``R p + t`` for each row."""
+    return points @ pose[:3, :3].T + pose[:3, 3]
+
+
+def skew(w: np.ndarray) -> np.ndarray:
+    """The (3, 3) cross-product matrix of ``w`` (3,): ``skew(w) @ v = w x v``."""
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def so3_exp(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix of the rotation vector ``w`` (3,) (Rodrigues)."""
+    theta = float(np.linalg.norm(w))
+    k = skew(w)
+    if theta < 1e-12:
+        return np.eye(3) + k
+    return np.eye(3) + math.sin(theta) / theta * k + (1.0 - math.cos(theta)) / theta**2 * (k @ k)
+
+
+def nearest_rotation(r: np.ndarray) -> np.ndarray:
+    """The rotation matrix nearest ``r`` (3, 3) (SVD projection): removes round-off before a solver sees it."""
+    u, _, vt = np.linalg.svd(r)
+    d = np.sign(np.linalg.det(u @ vt))
+    return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+def rotation_angle_deg(rotation: np.ndarray) -> np.ndarray:
+    """Angle (deg, 0..180) of ... x 3 x 3 rotation matrices (a float for one): |log(R)|."""
+    r = np.asarray(rotation, np.float64)
+    return np.degrees(np.arccos(np.clip((np.trace(r, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)))
+
+
+def heading_deg(rotation: np.ndarray) -> float:
+    """Heading (deg, -180..180] of a (3, 3) rotation or (4, 4) pose: ``atan2(R[1, 0], R[0, 0])``."""
+    m = np.asarray(rotation, np.float64)
+    return math.degrees(math.atan2(m[1, 0], m[0, 0]))
+
+
+def umeyama_rigid(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation (3, 3) and translation (3,) minimising |R source + t - target|^2 over (N, 3) points (no scale)."""
+    mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
+    cov = (target - mu_t).T @ (source - mu_s) / len(source)
+    u, _, vt = np.linalg.svd(cov)
+    s = np.diag([1.0, 1.0, np.sign(np.linalg.det(u) * np.linalg.det(vt)) or 1.0])
+    rot = u @ s @ vt
+    return rot, mu_t - rot @ mu_s

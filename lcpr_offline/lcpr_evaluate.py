@@ -1,0 +1,415 @@
+"""LCPR on a rosbag2: the bag run through the loop detector and scored against the bag's own odometry.
+
+:func:`evaluate_bag` reads synchronised frames with :func:`msg_tools.bags.read_frames`, runs
+:class:`lcpr_core.lcpr.detector.LoopDetector` frame by frame (collecting every candidate: the
+precision-recall sweep thresholds afterwards; ``max_distance`` is only the operating point
+reported and drawn), runs the Scan Context baseline on the same keyframes and returns an
+:class:`~lcpr_core.evaluation.EvaluationReport`; :func:`write_outputs` writes report.json,
+pr_curve.png, latency.png, trajectory.png (and posegraph.png). The protocols and figures are the
+shared layer's (:mod:`lcpr_core.evaluation`); the command line is ``lcpr_eval``
+(:mod:`lcpr_ros.evaluate`), which can take the node's own parameter file. No DDS, no rclpy. It lives
+here, above both lcpr_core and msg_tools, because it reads bags.
+
+With geometric verification on (the default), every candidate is also registered against the
+LiDAR and each keyframe's verified loop (``Result.loop``: the verified candidate with the best
+fitness) is reported as "LCPR + verification" beside the retrieval rows: precision, recall, max
+F1 over the fitness, recall at precision 1, the number of loops and their relative-pose error
+against the bag's ground truth (odometry poses are world_T_base; the LiDAR extrinsic
+base_T_lidar comes from /tf_static, ``base_frame`` to the clouds' frame, identity when the bag
+has no such transform, as for KITTI-style bags where base = LiDAR). The verified loops are also
+added to a pose graph over a seeded drift of the ground truth
+(:func:`lcpr_core.loop_report.pose_graph_proof`, GTSAM): ATE before and after, and posegraph.png.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import queue
+import threading
+import time
+from collections import Counter
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Generic, TypeVar, cast
+
+import numpy as np
+
+from lcpr_common.progress import progress_bar
+from lcpr_core.errors import InvalidValueError, LcprError
+from lcpr_core.evaluation import (
+    EvaluationReport,
+    MethodRun,
+    VerifiedLoops,
+    evaluate_method,
+    evaluate_verified,
+    ground_truth,
+    plot_latency,
+    plot_pr_curves,
+    plot_trajectory,
+)
+from lcpr_core.keyframes import KeyframeConfig
+from lcpr_core.lcpr.describer import Describer, ModelConfig
+from lcpr_core.lcpr.detector import Candidate, DetectorConfig, Frame, LoopDetector, MatchConfig, Result
+from lcpr_core.loop_report import PublishedLoop, pose_graph_proof
+from lcpr_core.posegraph import DriftModel
+from lcpr_core.pretrained import effective_max_distance
+from lcpr_core.scan_context import ScanContextConfig, ScanContextMatcher, rank_database
+from lcpr_core.verification import VerifierConfig
+from msg_tools.bags import read_frames, read_static_transforms
+from msg_tools.errors import MsgToolsError
+from msg_tools.frames import KITTI_TOPICS, NUSCENES_TOPICS, SensorFrame, Topics
+from msg_tools.transforms import BASE_FRAME
+
+TOPIC_PRESETS: dict[str, Topics] = {"nuscenes": NUSCENES_TOPICS, "kitti": KITTI_TOPICS}
+LIDAR_FOR_TOPICS = {"nuscenes": "nuscenes_lidar_top", "kitti": "kitti_hdl64e"}
+COLLECT_ALL = 2.0 + 1e-3  # unit descriptors are at most 2 apart: every candidate is kept
+N_VALUES = (1, 5, 10)
+OUTPUT_FILES = ("report.json", "pr_curve.png", "latency.png", "trajectory.png")
+POSEGRAPH_FILE = "posegraph.png"  # written besides OUTPUT_FILES when the pose-graph proof ran
+
+
+@dataclass(frozen=True)
+class EvalOptions:
+    """Everything an evaluation run depends on besides the bag."""
+
+    topics: Topics = NUSCENES_TOPICS
+    model: ModelConfig = field(default_factory=ModelConfig)
+    keyframe: KeyframeConfig = field(default_factory=KeyframeConfig)
+    exclude_recent_s: float = MatchConfig().exclude_recent_s  # the detector's defaults (one source)
+    radius: float = 9.0  # m: a candidate this close to the query's true position is correct
+    # descriptor distance of the reported operating point (AUTO_DISTANCE: the weights file's threshold)
+    max_distance: float = MatchConfig().max_distance
+    scan_context: ScanContextConfig | None = field(default_factory=ScanContextConfig)  # None = no baseline
+    sc_max_distance: float | None = None  # Scan Context distance under which a loop is accepted; None = max F1
+    slop: float = 0.05  # s between a cloud and its camera images
+    limit: int = 0  # frames to process; 0 = all
+    warmup: int = 5  # keyframes left out of the latency statistics
+    split_offset: float | None = None  # s after the first keyframe where database/query split; None = first revisit
+    verify: VerifierConfig = field(default_factory=VerifierConfig)  # enabled=False: retrieval only
+    base_frame: str = BASE_FRAME  # the odometry's child frame: base_T_lidar = /tf_static base_frame -> cloud frame
+    drift_seed: int = 0  # seed of the odometry drift of the pose-graph proof
+    pose_graph: bool = True  # run the pose-graph proof with the verified loops (needs gtsam)
+    batch: int = 1  # frames whose keyframes are described in one network call (matched in order, as online)
+
+    def __post_init__(self) -> None:
+        MatchConfig(max_distance=self.max_distance)  # a distance >= 0 or AUTO_DISTANCE, refused as the node does
+        for name in ("exclude_recent_s", "sc_max_distance", "slop", "limit", "warmup", "drift_seed"):
+            value = getattr(self, name)
+            if value is not None and not value >= 0:
+                raise InvalidValueError(f"{name}={value!r}; it must be >= 0")
+        if not self.radius > 0:
+            raise InvalidValueError(f"radius={self.radius!r}; it must be a positive distance in metres")
+        if self.batch < 1:
+            raise InvalidValueError(f"batch={self.batch!r}; it must be >= 1 frame")
+        if self.model.num_cameras != len(self.topics.cameras):
+            raise InvalidValueError(f"model.num_cameras={self.model.num_cameras} but the topics name "
+                             f"{len(self.topics.cameras)} cameras; they must agree")
+
+
+@dataclass
+class _RunRecord:
+    """What the run recorded, per keyframe in keyframe order."""
+
+    detector: LoopDetector
+    matcher: ScanContextMatcher | None
+    stamps: list[float] = field(default_factory=list)
+    lcpr_ids: list[list[int]] = field(default_factory=list)  # map ids, best first
+    lcpr_dist: list[list[float]] = field(default_factory=list)
+    lcpr_timings: list[dict[str, float]] = field(default_factory=list)
+    sc_ids: list[list[int]] = field(default_factory=list)
+    sc_dist: list[list[float]] = field(default_factory=list)
+    sc_timings: list[dict[str, float]] = field(default_factory=list)
+    map_ids: list[int] = field(default_factory=list)
+    poses: list[np.ndarray] = field(default_factory=list)  # 4 x 4 world_T_base, NaN where unknown
+    verified: list[Candidate | None] = field(default_factory=list)  # the keyframe's verified loop (Result.loop)
+    lidar_frame: str | None = None  # frame id of the clouds (the first keyframe's)
+    reasons: Counter = field(default_factory=Counter)
+    degraded: int = 0
+
+    frames: int = 0
+
+    @property
+    def positions(self) -> np.ndarray:
+        """(N, 3) keyframe positions, NaN where unknown."""
+        return np.asarray(self.poses, np.float64).reshape(-1, 4, 4)[:, :3, 3]
+
+
+T = TypeVar("T")
+
+
+class Prefetched(Generic[T]):
+    """An iterator read ahead by a thread, ``depth`` items at most: reading a bag (sqlite, CDR, numpy; much
+    of it outside the GIL) overlaps describing the frames before. Order and items are the iterator's own;
+    its exception is raised where the item would have been."""
+
+    _END = object()
+
+    def __init__(self, source: Iterator[T], *, depth: int = 8) -> None:
+        self._queue: queue.Queue[object] = queue.Queue(maxsize=max(1, depth))
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._fill, args=(source,), name="lcpr-prefetch", daemon=True)
+        self._thread.start()
+
+    def _fill(self, source: Iterator[T]) -> None:
+        try:
+            for item in source:
+                if not self._offer(item):
+                    return
+            self._offer(self._END)
+        except Exception as err:  # noqa: BLE001 - handed to the consumer, raised there
+            self._offer(err)
+
+    def _offer(self, item: object) -> bool:
+        """Queue ``item``, waiting for room; False when closed first."""
+        while not self._stop.is_set():
+            try:
+                self._queue.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def __iter__(self) -> Prefetched[T]:
+        return self
+
+    def __next__(self) -> T:
+        item = self._queue.get()
+        if item is self._END:
+            self._queue.put(item)  # stays at the end for a later call
+            raise StopIteration
+        if isinstance(item, Exception):
+            raise item
+        return cast(T, item)
+
+    def close(self) -> None:
+        """Stop reading ahead and wait for the thread (the source can then be closed)."""
+        self._stop.set()
+        self._thread.join()
+
+
+def to_detector_frame(frame: SensorFrame) -> Frame:
+    """A bag frame as the detector takes it: encoded or RGB images (None = missing), N x 3 points, pose."""
+    images = [None if c is None else (c.jpeg if c.jpeg is not None else c.rgb) for c in frame.cameras]
+    return Frame(stamp=frame.stamp, images=images, points=frame.xyz, pose=frame.pose)
+
+
+def evaluate_bag(
+    bag: str | os.PathLike[str],
+    options: EvalOptions | None = None,
+    *,
+    describer: Describer | None = None,
+    progress: bool = True,
+) -> EvaluationReport:
+    """Run the detector (and the baseline) over a bag and evaluate both; nothing is written."""
+    opts = options if options is not None else EvalOptions()
+    start = time.perf_counter()
+    config = DetectorConfig(
+        model=opts.model, keyframe=opts.keyframe,
+        match=MatchConfig(top_k=max(N_VALUES), max_distance=COLLECT_ALL, exclude_recent_s=opts.exclude_recent_s),
+        verify=opts.verify,
+    )
+    sc_cfg = None if opts.scan_context is None else dataclasses.replace(
+        opts.scan_context, exclude_recent_s=opts.exclude_recent_s)
+    matcher = None if sc_cfg is None else ScanContextMatcher(sc_cfg)
+    record = _RunRecord(LoopDetector(config, describer=describer), matcher)
+    setup = time.perf_counter() - start
+    stream = read_frames(bag, topics=opts.topics, slop=opts.slop, decode_compressed=False)
+    total = len(stream) if not opts.limit else min(opts.limit, len(stream))
+    bar = progress_bar(total, desc="lcpr_eval", unit="frame", enabled=progress)
+    batch = opts.batch
+    pending: list[SensorFrame] = []
+    frames = Prefetched(stream, depth=2 * batch + 4)  # the bag is read while the detector works
+    try:
+        for frame in frames:
+            if opts.limit and record.frames + len(pending) >= opts.limit:
+                break
+            pending.append(frame)
+            if len(pending) >= batch:
+                _steps(pending, record)
+                bar.update(len(pending))
+                bar.set_postfix(keyframes=len(record.stamps), refresh=False)
+                pending = []
+        if pending:
+            _steps(pending, record)
+            bar.update(len(pending))
+    finally:
+        frames.close()
+        stream.close()
+        bar.close()
+    stats = dataclasses.asdict(stream.stats)
+    counts = {
+        "frames": record.frames, "frames_in_bag": len(stream), "keyframes": len(record.stamps),
+        "not_keyframes": {r: n for r, n in record.reasons.items() if r != "keyframe"},
+        "degraded_keyframes": record.degraded,
+        "keyframes_without_pose": int((~np.isfinite(record.positions).all(axis=1)).sum()),
+        "dropped_clouds": stream.stats.dropped_clouds, "reader": stats,
+    }
+    report = _evaluate(record, opts, sc_cfg, counts, os.fspath(bag))
+    if opts.verify.enabled:
+        report.verified = _verified(record, opts, report, bag)
+    report.wall_time_s, report.setup_time_s = time.perf_counter() - start, setup
+    return report
+
+
+def base_T_lidar_of(bag: str | os.PathLike[str], lidar_frame: str | None, *, base_frame: str = BASE_FRAME,
+                    tf_static: str = "/tf_static") -> tuple[np.ndarray, str]:
+    """(base_T_lidar (4, 4), where it came from): ``tf_static`` ``base_frame`` -> ``lidar_frame``, else identity."""
+    if lidar_frame is None:
+        return np.eye(4), "identity (no keyframe, no cloud frame)"
+    if lidar_frame == base_frame:
+        return np.eye(4), f"identity (the clouds are in {base_frame!r})"
+    try:
+        found = read_static_transforms(bag, topic=tf_static).lookup(base_frame, lidar_frame)
+    except MsgToolsError as err:
+        return np.eye(4), f"identity ({tf_static} unreadable: {err})"
+    if found is None:
+        return np.eye(4), f"identity (no {tf_static} transform links {base_frame!r} to {lidar_frame!r})"
+    return np.asarray(found, np.float64), f"{tf_static} {base_frame} -> {lidar_frame}"
+
+
+def _verified(record: _RunRecord, opts: EvalOptions, report: EvaluationReport,
+              bag: str | os.PathLike[str]) -> VerifiedLoops:
+    """Score each keyframe's verified loop and put them in a pose graph over drifted ground truth."""
+    row_of = {map_id: row for row, map_id in enumerate(record.map_ids)}
+    loops, fitness = [], []
+    for row, loop in enumerate(record.verified):
+        if loop is not None and loop.match_id in row_of:
+            loops.append(PublishedLoop(row, row_of[loop.match_id], loop.match_T_query, loop.covariance))
+            fitness.append(loop.fitness)
+    base_T_lidar, source = base_T_lidar_of(bag, record.lidar_frame, base_frame=opts.base_frame,
+                                           tf_static=opts.topics.tf_static)
+    world_T_base = np.asarray(record.poses, np.float64).reshape(-1, 4, 4)
+    result = evaluate_verified(report.ground_truth, loops, fitness, world_T_lidar=world_T_base @ base_T_lidar)
+    proof, note = None, ""
+    missing = int((~np.isfinite(world_T_base).all(axis=(1, 2))).sum())
+    if not opts.pose_graph:
+        note = "not run (disabled)"
+    elif len(world_T_base) < 2:
+        note = f"not run ({len(world_T_base)} keyframes)"
+    elif missing:
+        note = f"not run ({missing} keyframes without an odometry pose)"
+    elif not any(loop.match_T_query is not None for loop in loops):
+        note = "not run (no verified loop with a pose)"
+    else:
+        try:
+            proof = pose_graph_proof(world_T_base, loops, body_T_lidar=base_T_lidar,
+                                     drift=DriftModel(seed=opts.drift_seed))
+        except LcprError as err:  # gtsam missing, or a pose it cannot use
+            note = f"not run: {err}"
+    return dataclasses.replace(result, pose_graph=proof, pose_graph_note=note, base_T_lidar=base_T_lidar,
+                               base_T_lidar_source=source)
+
+
+def _steps(frames: list[SensorFrame], record: _RunRecord) -> None:
+    """Frames through the detector (keyframes described in one batch), then recorded in order."""
+    det_frames = [to_detector_frame(frame) for frame in frames]
+    for frame, det_frame, result in zip(frames, det_frames, record.detector.process_batch(det_frames),
+                                        strict=True):
+        _record(frame, det_frame, result, record)
+
+
+def _record(frame: SensorFrame, det_frame: Frame, result: Result, record: _RunRecord) -> None:
+    record.frames += 1
+    record.reasons[result.reason] += 1
+    if result.keyframe_id is None:
+        return
+    pose = np.full((4, 4), np.nan) if frame.pose is None else np.asarray(frame.pose, np.float64)
+    position = pose[:3, 3].copy()
+    record.stamps.append(frame.stamp)
+    record.poses.append(pose)
+    record.map_ids.append(result.keyframe_id)
+    if record.lidar_frame is None:
+        record.lidar_frame = frame.lidar_frame_id
+    record.verified.append(result.loop if result.verification else None)
+    record.lcpr_ids.append([c.match_id for c in result.candidates])
+    record.lcpr_dist.append([c.distance for c in result.candidates])
+    record.lcpr_timings.append(dict(result.timings))
+    record.degraded += bool(result.missing_cameras)
+    if record.matcher is not None:
+        assert det_frame.points is not None  # keyframes always have a cloud (require_lidar)
+        sc = record.matcher.process(det_frame.points, stamp=frame.stamp, position=position, k=max(N_VALUES))
+        record.sc_ids.append([m.id for m in sc.matches])  # matcher ids are keyframe rows
+        record.sc_dist.append([m.distance for m in sc.matches])
+        record.sc_timings.append(sc.timings)
+
+
+def _ranked(
+    ids: list[list[int]], dist: list[list[float]], row_of: dict[int, int], k: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate lists -> (N, k) keyframe rows (-1 = none) and distances (inf = none)."""
+    out_ids = np.full((len(ids), k), -1, np.int64)
+    out_d = np.full((len(ids), k), np.inf)
+    for r, (row_ids, row_d) in enumerate(zip(ids, dist, strict=True)):
+        for c, (i, d) in enumerate(zip(row_ids[:k], row_d[:k], strict=True)):
+            out_ids[r, c], out_d[r, c] = row_of[i], d
+    return out_ids, out_d
+
+
+def _evaluate(record: _RunRecord, opts: EvalOptions, sc_cfg: ScanContextConfig | None, counts: dict[str, Any],
+              source: str) -> EvaluationReport:
+    k = max(N_VALUES)
+    stamps = np.asarray(record.stamps, np.float64)
+    positions = record.positions
+    split = None if opts.split_offset is None or not len(stamps) else float(stamps[0]) + opts.split_offset
+    gt = ground_truth(stamps, positions, radius=opts.radius, exclude_recent_s=opts.exclude_recent_s, split_time=split)
+    row_of = {map_id: row for row, map_id in enumerate(record.map_ids)}
+    ids, dist = _ranked(record.lcpr_ids, record.lcpr_dist, row_of, k)
+    max_distance = effective_max_distance(opts.max_distance, record.detector.weights_threshold,
+                                          verified=opts.verify.enabled)
+    runs = [MethodRun(name="LCPR", ranked_ids=ids, ranked_distances=dist, threshold=max_distance,
+                      timings=record.lcpr_timings, descriptors=_descriptors(record, row_of),
+                      distance="descriptor L2 (0..2)")]
+    if sc_cfg is not None and record.matcher is not None:
+        ids, dist = _ranked(record.sc_ids, record.sc_dist, {i: i for i in range(len(record.sc_ids))}, k)
+        scs = record.matcher.descriptors
+
+        def retrieve(q: np.ndarray, db: np.ndarray, kk: int) -> tuple[np.ndarray, np.ndarray]:
+            return rank_database(scs[q], scs[db], k=kk, config=sc_cfg)
+
+        runs.append(MethodRun(name="Scan Context", ranked_ids=ids, ranked_distances=dist,
+                              threshold=opts.sc_max_distance, timings=record.sc_timings, retrieve=retrieve,
+                              distance="column-shift cosine (0..1)"))
+    methods = [evaluate_method(run, gt, n_values=N_VALUES, warmup=opts.warmup) for run in runs]
+    settings = {
+        "topics": dataclasses.asdict(opts.topics), "model": dataclasses.asdict(record.detector.describer.config),
+        "keyframe": dataclasses.asdict(opts.keyframe), "exclude_recent_s": opts.exclude_recent_s,
+        "radius": opts.radius, "max_distance": max_distance, "sc_max_distance": opts.sc_max_distance,
+        "scan_context": None if sc_cfg is None else dataclasses.asdict(sc_cfg), "slop": opts.slop,
+        "limit": opts.limit, "warmup": opts.warmup, "n_values": list(N_VALUES), "split_offset": opts.split_offset,
+        "verify": dataclasses.asdict(opts.verify), "base_frame": opts.base_frame, "drift_seed": opts.drift_seed,
+        "pose_graph": opts.pose_graph,
+    }
+    return EvaluationReport(source=source, settings=settings, counts=counts, ground_truth=gt, methods=methods)
+
+
+def _descriptors(record: _RunRecord, row_of: dict[int, int]) -> np.ndarray | None:
+    """(N, D) LCPR descriptors in keyframe order, read back from the detector's map."""
+    if not row_of:
+        return None
+    ids = record.detector.map.ids
+    desc = record.detector.map.descriptors
+    out = np.zeros((len(row_of), desc.shape[1]), np.float32)
+    for pos, map_id in enumerate(ids.tolist()):
+        if map_id in row_of:
+            out[row_of[map_id]] = desc[pos]
+    return out
+
+
+def write_outputs(report: EvaluationReport, out: str | os.PathLike[str]) -> list[Path]:
+    """report.json, the three figures and, when the pose-graph proof ran, posegraph.png into ``out``.
+
+    Returns the paths written.
+    """
+    folder = Path(out)
+    paths = [folder / name for name in OUTPUT_FILES]
+    report.write_json(paths[0])
+    plot_pr_curves(report.methods, paths[1])
+    plot_latency(report.methods, paths[2], warmup=int(report.settings.get("warmup", 0)))
+    plot_trajectory(report.ground_truth, report.methods, paths[3])
+    proof = None if report.verified is None else report.verified.pose_graph
+    if proof is not None:
+        paths.append(folder / POSEGRAPH_FILE)
+        proof.write_plot(paths[-1], title=f"{Path(report.source).name}: verified loops in a GTSAM pose graph "
+                                          "(seeded odometry drift)")
+    return paths
