@@ -40,9 +40,10 @@ def site_packages(prefix: Path) -> Path:
     return found[0]
 
 
-def run_installed(prefix: Path, *command: str) -> subprocess.CompletedProcess[str]:
+def run_installed(prefix: Path, *command: str, **extra_env: str) -> subprocess.CompletedProcess[str]:
     """Run with this venv's interpreter (it has torch, faiss, rclpy) and the installed package first on the path."""
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(site_packages(prefix)), sysconfig.get_paths()["purelib"]])}
+    env = {**os.environ, **extra_env,
+           "PYTHONPATH": os.pathsep.join([str(site_packages(prefix)), sysconfig.get_paths()["purelib"]])}
     return subprocess.run([sys.executable, *command], cwd=prefix, env=env, capture_output=True, text=True,
                           timeout=120)
 
@@ -69,3 +70,11 @@ def test_the_installed_lcpr_node_runs_from_the_install_tree(installed: Path) -> 
     refused = run_installed(installed, str(installed / "lib" / PACKAGE / "lcpr_node"),
                             "--ros-args", "-p", "match.top_k:=0")
     assert refused.returncode == 1 and "match.top_k out of range" in refused.stdout + refused.stderr
+
+
+@pytest.mark.slow
+def test_the_installed_package_finds_its_bundled_weights_through_the_ament_prefix(installed: Path) -> None:
+    script = "from lcpr_core.pretrained import default_weights; print(default_weights())"
+    done = run_installed(installed, "-c", script, AMENT_PREFIX_PATH=str(installed))  # as a sourced install sets it
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == str(installed / "share" / PACKAGE / "weights" / "lcpr_synth_narrow.pth")

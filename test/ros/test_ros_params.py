@@ -97,11 +97,11 @@ def test_the_params_file_lists_every_parameter_with_its_default() -> None:
     assert flatten(yaml.safe_load(to_yaml(all_leaves()))["/**"]["ros__parameters"]) == expected
 
 
-def test_the_launch_file_starts_lcpr_node_named_lcpr_with_the_params_file_and_a_weights_argument() -> None:
+def test_the_launch_file_starts_lcpr_node_named_lcpr_with_the_params_file_and_the_bundled_weights() -> None:
     root = ET.parse(REPO / "launch" / "lcpr.launch.xml").getroot()
     assert root.tag == "launch"
     args = {a.get("name"): a for a in root.findall("arg")}
-    assert "weights" in args
+    assert args["weights"].get("default") == "bundled"
     (node,) = root.findall("node")
     assert (node.get("pkg"), node.get("exec"), node.get("name")) == (PACKAGE, "lcpr_node", "lcpr")
     params = node.findall("param")
