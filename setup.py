@@ -88,6 +88,7 @@ setup(
             "vseq2pc_eval = lcpr_core.vseq2pc.evaluate:main",
             "msg_tools_nuscenes2bag = msg_tools.convert.nuscenes:main",
             "msg_tools_kitti2bag = msg_tools.convert.kitti:main",
+            "msg_tools_scans2bag = msg_tools.convert.scans2bag:main",
             "msg_tools_baginfo = msg_tools.convert.baginfo:main",
             "citysim = citysim.cli:main",
             "msg_tools_synth = citysim.cli:main",  # the same command under the name interfaces.md gives it
