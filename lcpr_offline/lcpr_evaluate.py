@@ -51,6 +51,7 @@ from lcpr_core.evaluation import (
 from lcpr_core.keyframes import KeyframeConfig
 from lcpr_core.lcpr.describer import Describer, ModelConfig
 from lcpr_core.lcpr.detector import Candidate, DetectorConfig, Frame, LoopDetector, MatchConfig, Result
+from lcpr_core.lcpr.preprocess.camera import CameraInput
 from lcpr_core.loop_report import PublishedLoop, pose_graph_proof
 from lcpr_core.posegraph import DriftModel
 from lcpr_core.pretrained import effective_max_distance
@@ -61,8 +62,11 @@ from msg_tools.errors import MsgToolsError
 from msg_tools.frames import KITTI_TOPICS, NUSCENES_TOPICS, SensorFrame, Topics
 from msg_tools.transforms import BASE_FRAME
 
-TOPIC_PRESETS: dict[str, Topics] = {"nuscenes": NUSCENES_TOPICS, "kitti": KITTI_TOPICS}
-LIDAR_FOR_TOPICS = {"nuscenes": "nuscenes_lidar_top", "kitti": "kitti_hdl64e"}
+#: msg_tools_scans2bag's layout: one LiDAR and its poses, no cameras.
+SCAN_TOPICS = dataclasses.replace(NUSCENES_TOPICS, cameras=(), camera_info=(), depth=(), labels=(), lidar="/points",
+                                  odom="/odom")
+TOPIC_PRESETS: dict[str, Topics] = {"nuscenes": NUSCENES_TOPICS, "kitti": KITTI_TOPICS, "scans": SCAN_TOPICS}
+LIDAR_FOR_TOPICS = {"nuscenes": "nuscenes_lidar_top", "kitti": "kitti_hdl64e", "scans": "nuscenes_lidar_top"}
 COLLECT_ALL = 2.0 + 1e-3  # unit descriptors are at most 2 apart: every candidate is kept
 N_VALUES = (1, 5, 10)
 OUTPUT_FILES = ("report.json", "pr_curve.png", "latency.png", "trajectory.png")
@@ -91,6 +95,7 @@ class EvalOptions:
     drift_seed: int = 0  # seed of the odometry drift of the pose-graph proof
     pose_graph: bool = True  # run the pose-graph proof with the verified loops (needs gtsam)
     batch: int = 1  # frames whose keyframes are described in one network call (matched in order, as online)
+    lidar_only: bool = False  # no cameras read: every frame described with all camera slots empty
 
     def __post_init__(self) -> None:
         MatchConfig(max_distance=self.max_distance)  # a distance >= 0 or AUTO_DISTANCE, refused as the node does
@@ -102,7 +107,9 @@ class EvalOptions:
             raise InvalidValueError(f"radius={self.radius!r}; it must be a positive distance in metres")
         if self.batch < 1:
             raise InvalidValueError(f"batch={self.batch!r}; it must be >= 1 frame")
-        if self.model.num_cameras != len(self.topics.cameras):
+        if self.lidar_only and self.topics.cameras:
+            raise InvalidValueError(f"lidar_only with camera topics {list(self.topics.cameras)}; give no camera topics")
+        if not self.lidar_only and self.model.num_cameras != len(self.topics.cameras):
             raise InvalidValueError(f"model.num_cameras={self.model.num_cameras} but the topics name "
                              f"{len(self.topics.cameras)} cameras; they must agree")
 
@@ -188,9 +195,13 @@ class Prefetched(Generic[T]):
         self._thread.join()
 
 
-def to_detector_frame(frame: SensorFrame) -> Frame:
-    """A bag frame as the detector takes it: encoded or RGB images (None = missing), N x 3 points, pose."""
-    images = [None if c is None else (c.jpeg if c.jpeg is not None else c.rgb) for c in frame.cameras]
+def to_detector_frame(frame: SensorFrame, *, cameras: int | None = None) -> Frame:
+    """A bag frame as the detector takes it: encoded or RGB images (None = missing; ``cameras`` slots, padded
+    with None, when given), N x 3 points, pose."""
+    images: list[CameraInput | None] = [None if c is None else (c.jpeg if c.jpeg is not None else c.rgb)
+                                        for c in frame.cameras]
+    if cameras is not None:
+        images += [None] * (cameras - len(images))
     return Frame(stamp=frame.stamp, images=images, points=frame.xyz, pose=frame.pose)
 
 
@@ -214,7 +225,8 @@ def evaluate_bag(
     matcher = None if sc_cfg is None else ScanContextMatcher(sc_cfg)
     record = _RunRecord(LoopDetector(config, describer=describer), matcher)
     setup = time.perf_counter() - start
-    stream = read_frames(bag, topics=opts.topics, slop=opts.slop, decode_compressed=False)
+    stream = read_frames(bag, topics=opts.topics, slop=opts.slop, decode_compressed=False,
+                         min_cameras=0 if opts.lidar_only else 1)
     total = len(stream) if not opts.limit else min(opts.limit, len(stream))
     bar = progress_bar(total, desc="lcpr_eval", unit="frame", enabled=progress)
     batch = opts.batch
@@ -303,7 +315,7 @@ def _verified(record: _RunRecord, opts: EvalOptions, report: EvaluationReport,
 
 def _steps(frames: list[SensorFrame], record: _RunRecord) -> None:
     """Frames through the detector (keyframes described in one batch), then recorded in order."""
-    det_frames = [to_detector_frame(frame) for frame in frames]
+    det_frames = [to_detector_frame(frame, cameras=record.detector.config.model.num_cameras) for frame in frames]
     for frame, det_frame, result in zip(frames, det_frames, record.detector.process_batch(det_frames),
                                         strict=True):
         _record(frame, det_frame, result, record)

@@ -37,6 +37,7 @@ from lcpr_offline.lcpr_evaluate import (  # noqa: F401 - the evaluation's API, i
     write_outputs,
 )
 from msg_tools.errors import MsgToolsError
+from msg_tools.frames import Topics
 from msg_tools.transforms import BASE_FRAME
 
 from .params import NODE_DEFAULTS
@@ -77,8 +78,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="range-image preset (default: by --topics, nuscenes_lidar_top or kitti_hdl64e)")
     g = p.add_argument_group("topics")
     g.add_argument("--topics", choices=sorted(TOPIC_PRESETS), default="nuscenes",
-                   help="topic preset (default nuscenes)")
+                   help="topic preset (default nuscenes; scans: /points and /odom as msg_tools_scans2bag writes them)")
     g.add_argument("--camera-topics", nargs="+", default=None, metavar="TOPIC", help="camera topics, in rig order")
+    g.add_argument("--lidar-only", action="store_true",
+                   help="read no cameras: every frame is described with all camera slots empty (a LiDAR-only "
+                        "vehicle; --topics scans implies it)")
     g.add_argument("--lidar-topic", default=None, help="PointCloud2 topic")
     g.add_argument("--odom-topic", default=None, help="nav_msgs/Odometry topic (ground truth)")
     g.add_argument("--slop", type=float, default=NODE.node.sync.slop,
@@ -148,6 +152,8 @@ def options_from_params_file(args: argparse.Namespace) -> EvalOptions:
         overrides["weights"] = SEEDED
     if args.seed:
         overrides["seed"] = args.seed
+    if args.lidar_only:
+        topics = _without_cameras(topics)
     return EvalOptions(
         topics=topics, model=dataclasses.replace(det.model, **overrides), keyframe=det.keyframe,
         exclude_recent_s=det.match.exclude_recent_s, max_distance=det.match.max_distance, slop=node.sync.slop,
@@ -163,7 +169,11 @@ def _evaluation_options(args: argparse.Namespace) -> dict[str, Any]:
                 scan_context=None if args.no_scan_context else ScanContextConfig(lidar_height=args.lidar_height),
                 sc_max_distance=args.sc_max_distance, limit=args.limit, warmup=args.warmup,
                 split_offset=args.split_offset, base_frame=args.base_frame, drift_seed=args.drift_seed,
-                batch=args.batch)
+                batch=args.batch, lidar_only=args.lidar_only or args.topics == "scans")
+
+
+def _without_cameras(topics: Topics) -> Topics:
+    return dataclasses.replace(topics, cameras=(), camera_info=(), depth=(), labels=())
 
 
 def options_from_args(args: argparse.Namespace) -> EvalOptions:
@@ -179,9 +189,12 @@ def options_from_args(args: argparse.Namespace) -> EvalOptions:
     )
     if args.camera_topics:  # depth/label topics belong to the preset's cameras
         topics = dataclasses.replace(topics, depth=(), labels=())
+    if args.lidar_only:
+        topics = _without_cameras(topics)
     model = ModelConfig(
         weights=SEEDED if args.seeded else command_weights(args.weights, imagenet=args.imagenet),
-        imagenet=args.imagenet, seed=args.seed, num_cameras=len(topics.cameras),
+        imagenet=args.imagenet, seed=args.seed,
+        num_cameras=len(topics.cameras) or ModelConfig().num_cameras,  # LiDAR only: the rig's slots, all empty
         image_size=tuple(args.image_size) if args.image_size else ModelConfig().image_size,
         lidar=args.lidar or LIDAR_FOR_TOPICS[args.topics], precision=args.precision, threads=args.threads,
         runtime=args.runtime, device=args.device or "cpu", decode=args.decode,

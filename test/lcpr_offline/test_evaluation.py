@@ -287,6 +287,19 @@ def test_lcpr_eval_runs_a_bag_and_writes_the_report_and_figures(loop_bag: Path, 
     assert sc["online"]["operating_point"]["false_positives"] == 0
 
 
+def test_lcpr_eval_lidar_only_reads_no_camera_and_describes_every_keyframe_with_empty_slots(
+        loop_bag: Path, tmp_path: Path) -> None:
+    from lcpr_ros.evaluate import main, options_from_args, parse_args
+
+    assert main([str(loop_bag), "--out", str(tmp_path), "--limit", "6", "--no-scan-context", "--lidar-only",
+                 *SMALL]) == 0
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["counts"]["keyframes"] == 6 and report["counts"]["degraded_keyframes"] == 6
+    assert report["settings"]["topics"]["cameras"] == [] and report["settings"]["model"]["num_cameras"] == 6
+    scans = options_from_args(parse_args([str(loop_bag), "--topics", "scans"]))
+    assert scans.lidar_only and scans.topics.lidar == "/points" and scans.topics.odom == "/odom"
+
+
 def test_lcpr_eval_on_a_short_prefix_without_loops_still_reports(loop_bag: Path, tmp_path: Path,
                                                                  capsys: pytest.CaptureFixture[str]) -> None:
     from lcpr_ros.evaluate import main
