@@ -6,6 +6,7 @@ Every ``__post_init__`` refuses a bad value with a ValueError naming it.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 from lcpr_core.lcpr.detector import DetectorConfig
@@ -43,6 +44,7 @@ class NodeConfig:
     sync: SyncConfig = field(default_factory=SyncConfig)
     map: MapFileConfig = field(default_factory=MapFileConfig)
     diagnostics: DiagnosticsConfig = field(default_factory=DiagnosticsConfig)
+    lidar_only: bool = False  # no camera subscriptions: every frame described with all camera slots empty
 
     def __post_init__(self) -> None:
         require(self.camera_type in CAMERA_TYPES,
@@ -53,6 +55,14 @@ class NodeConfig:
         require(len(set(self.camera_topics)) == len(self.camera_topics),
                f"camera_topics={list(self.camera_topics)} repeat a topic; give one topic per camera")
         require(bool(self.lidar_topic), "lidar_topic is empty; a PointCloud2 topic is required")
+
+    def subscribed_cameras(self) -> tuple[str, ...]:
+        """The camera topics the node subscribes to (none when ``lidar_only``)."""
+        return () if self.lidar_only else self.camera_topics
+
+    def frame_sync(self) -> SyncConfig:
+        """The synchroniser's settings: a LiDAR-only node releases every cloud without waiting for images."""
+        return dataclasses.replace(self.sync, min_cameras=0) if self.lidar_only else self.sync
 
     def compressed(self, index: int) -> bool:
         """Whether camera ``index`` is subscribed as sensor_msgs/CompressedImage."""

@@ -88,7 +88,7 @@ class LcprNode(NodeStats, Node):
 
         self._sensor_subscriptions: list[SensorSubscription] = []
         self.poses, self.markers = self._pose_parts(node_cfg)  # first: see _pose_parts
-        self.sync = Synchroniser(node_cfg.sync, len(node_cfg.camera_topics), poses=self.poses)
+        self.sync = Synchroniser(node_cfg.frame_sync(), len(node_cfg.subscribed_cameras()), poses=self.poses)
 
         self._loop_pub = self.create_publisher(Float64MultiArray, "~/loop_closure", CANDIDATE_QOS)
         self._candidates_pub = self.create_publisher(Float64MultiArray, "~/candidates", CANDIDATE_QOS)
@@ -96,7 +96,7 @@ class LcprNode(NodeStats, Node):
         self._diagnostics = DiagnosticsBuilder(self.get_name())
 
         self._payload: list[Callable[[Any], Any]] = []
-        for k, topic in enumerate(node_cfg.camera_topics):
+        for k, topic in enumerate(node_cfg.subscribed_cameras()):
             compressed = node_cfg.compressed(k)
             self._payload.append(compressed_payload if compressed else raw_payload)
             self._subscribe(CompressedImage if compressed else Image, topic, partial(self._on_image, k))
@@ -110,7 +110,8 @@ class LcprNode(NodeStats, Node):
         self.worker.start()
         RuntimeParameters(self, self._leaves, self._apply, build=settings_from)
         where = node_cfg.map.path or "memory only"
-        log.info(f"ready: {len(node_cfg.camera_topics)} cameras, lidar {node_cfg.lidar_topic}, "
+        cameras = len(node_cfg.subscribed_cameras()) or "no (lidar_only)"
+        log.info(f"ready: {cameras} cameras, lidar {node_cfg.lidar_topic}, "
                  f"odometry {node_cfg.odom_topic or 'none'}; map {where} with {len(self.detector.map)} places")
 
     def _pose_parts(self, cfg: NodeConfig) -> tuple[PoseSource, MarkerSink]:
@@ -213,6 +214,7 @@ class LcprNode(NodeStats, Node):
             except InputRejected as err:
                 self._reject(InputRejected(err.reason, f"{self.settings.node.camera_topics[k]}: {err.detail}"))
                 images.append(None)
+        images += [None] * (self.settings.detector.model.num_cameras - len(images))  # lidar_only: all slots empty
         frame = Frame(stamp=synced.stamp_ns / NS_PER_S, images=images, points=synced.points, pose=synced.pose)
         self.get_logger().debug(f"frame {frame.stamp:.9f}: deciding")
         with self._detector_lock:
@@ -257,7 +259,7 @@ class LcprNode(NodeStats, Node):
     def _apply(self, settings: Settings) -> None:
         self.settings = settings
         self._next_detector_config = settings.detector  # taken by the worker before its next frame
-        self.sync.config = settings.node.sync
+        self.sync.config = settings.node.frame_sync()
         self.poses.configure(slop=settings.node.sync.slop, max_gap=settings.node.sync.odom_max_gap)
 
     def save_map(self, *, timeout: float = -1) -> int:

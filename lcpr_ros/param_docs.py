@@ -104,6 +104,8 @@ DOCS: dict[str, ParamDoc] = {
                             "sensor_msgs/CompressedImage, others sensor_msgs/Image", choices=CAMERA_TYPES),
     "lidar_topic": ParamDoc("sensor_msgs/PointCloud2 topic"),
     "odom_topic": ParamDoc("nav_msgs/Odometry topic for poses (markers, keyframe.min_distance); empty = none"),
+    "lidar_only": ParamDoc("no camera subscriptions: every frame is described with all camera slots empty, "
+                           "verified and published as usual (a vehicle with a LiDAR and no surround cameras)"),
     # ---- synchronisation
     "sync.slop": ParamDoc("s: each camera's image nearest the cloud stamp within this is used", 0.0, 10.0,
                           dynamic=True),

@@ -343,3 +343,38 @@ def test_a_verified_loop_carries_its_relative_pose_and_covariance_on_candidates(
     assert np.allclose(cov, cov.T) and (np.linalg.eigvalsh(cov) > 0).all()
     assert wait_until(lambda: int(ros.listener.latest_values("detector").get("candidates verified", 0)) >= 1, 10)
     assert ros.listener.latest_values("detector")["inference path"] in ("fp32", "bf16", "onnx")  # what auto chose
+
+
+def test_a_lidar_only_node_subscribes_no_camera_and_closes_loops_from_clouds_alone(tmp_path: Path) -> None:
+    topics = Topics(f"/t{random.randint(0, 10**6)}")
+    context = Context()
+    rclpy.init(context=context, domain_id=random.randint(1, 100))
+    node = LcprNode(context=context, parameter_overrides=small_model(topics, lidar_only=True))
+    driver = rclpy.create_node("driver", context=context)
+    try:
+        with spinning(context, node, driver):
+            pub = FramePublisher(driver, topics.cameras, topics.lidar)
+            listener = OutputListener(driver)
+            assert wait_until(lambda: pub.lidar.get_subscription_count() == 1, 20)
+            assert all(cam.get_subscription_count() == 0 for cam in pub.cameras)
+            listener.wait_for_publishers()
+            places = [synthetic_place(i) for i in range(2)]
+            everything = tuple(range(6))
+
+            def decided() -> int:
+                return sum(node.decisions.snapshot().values())
+
+            for n, (stamp, place) in enumerate(((T0, places[0]), (T0 + 1.0, places[1]), (T0 + 40.0, places[0]))):
+                pub.publish(place, stamp, skip_cameras=everything)
+
+                def done(before: int = n) -> bool:
+                    return decided() > before
+                assert wait_until(done, WAIT), f"frame {stamp} was not processed"
+            assert listener.wait(lambda o: bool(o.loops), 10)
+            assert listener.out.loops == [(pytest.approx(T0 + 40.0), pytest.approx(T0))]
+            assert listener.out.candidates[-1][0]["degraded"] == 1  # every camera slot was empty
+    finally:
+        node.close()
+        node.destroy_node()
+        driver.destroy_node()
+        rclpy.try_shutdown(context=context)
