@@ -32,6 +32,7 @@ from ..bags import BagWriter
 from ..errors import DatasetError, MsgToolsError
 from ..pcd import read_pcd
 from .cli import add_output_options, print_summary
+from .kitti import kitti_cloud
 from .kitti_files import read_calibration, read_scan
 from .scan_folder import read_kitti_poses
 
@@ -87,11 +88,7 @@ def line_index(scans: Sequence[Path], lines: int, what: str) -> np.ndarray:
 def read_cloud(path: Path) -> np.ndarray:
     """One scan as a structured array with float32 x, y, z (and whatever else the file holds)."""
     if path.suffix == ".bin":
-        points = read_scan(path)
-        cloud = np.zeros(len(points), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4")])
-        for column, name in enumerate(("x", "y", "z", "intensity")):
-            cloud[name] = points[:, column]
-        return cloud
+        return kitti_cloud(read_scan(path), None)
     cloud = read_pcd(path)
     missing = [n for n in "xyz" if n not in (cloud.dtype.names or ())]
     if missing:
