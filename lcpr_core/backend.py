@@ -668,7 +668,7 @@ class PoseGraphBackend:
         est = self._node_estimates()
         node_t = np.array(self._node_stamps)
         odom = self._odom.view()[np.array(self._node_index)]
-        corr = est @ _inverse_batch(odom)  # (K, 4, 4)
+        corr = est @ invert(odom)  # (K, 4, 4)
         hi = np.clip(np.searchsorted(node_t, stamps, side="left"), 0, len(node_t) - 1)
         lo = np.clip(hi - 1, 0, None)
         span = node_t[hi] - node_t[lo]
@@ -781,15 +781,6 @@ def _show(value: Any) -> str:
     except (TypeError, ValueError):
         return repr(value)
     return np.array2string(arr, precision=4, max_line_width=200, threshold=64).replace("\n", "")
-
-
-def _inverse_batch(poses: np.ndarray) -> np.ndarray:
-    out = np.zeros_like(poses)
-    rt = np.swapaxes(poses[:, :3, :3], 1, 2)
-    out[:, :3, :3] = rt
-    out[:, :3, 3] = -np.einsum("nij,nj->ni", rt, poses[:, :3, 3])
-    out[:, 3, 3] = 1.0
-    return out
 
 
 def _rotation_angle(r: np.ndarray) -> float:

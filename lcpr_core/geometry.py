@@ -14,11 +14,13 @@ import numpy as np
 
 
 def invert(pose: np.ndarray) -> np.ndarray:
-    """The inverse of a rigid (4, 4) transform: ``(R^T, -R^T t)``."""
+    """The inverse of a rigid (4, 4) transform, or of each in a (..., 4, 4) stack: ``(R^T, -R^T t)``."""
     m = np.asarray(pose, np.float64)
-    out = np.eye(4)
-    out[:3, :3] = m[:3, :3].T
-    out[:3, 3] = -m[:3, :3].T @ m[:3, 3]
+    rt = np.swapaxes(m[..., :3, :3], -1, -2)
+    out = np.zeros_like(m)
+    out[..., :3, :3] = rt
+    out[..., :3, 3] = -(rt @ m[..., :3, 3, None])[..., 0]
+    out[..., 3, 3] = 1.0
     return out
 
 

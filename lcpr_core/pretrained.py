@@ -182,9 +182,8 @@ def resolve_vseq2pc_weights(sequence: str, descriptor: str) -> tuple[str, str] |
     return sequence, descriptor
 
 
-def describe_vseq2pc_weights(sequence: str, descriptor: str) -> str:
-    """What the VSeq2PC weight settings load, for an entry point's first log line."""
-    files = resolve_vseq2pc_weights(sequence, descriptor)
+def describe_vseq2pc_weights(files: tuple[str, str] | None) -> str:
+    """What :func:`resolve_vseq2pc_weights` resolved to (None: seeded), for an entry point's first log line."""
     if files is None:
         return "seeded random weights (NOT trained: for tests only; matches mean nothing)"
     for name, depth in VSEQ2PC_BUNDLED.items():

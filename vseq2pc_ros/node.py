@@ -34,7 +34,7 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
 from lcpr_core.keyframes import KEYFRAME
-from lcpr_core.pretrained import SEEDED, describe_vseq2pc_weights, resolve_vseq2pc_weights
+from lcpr_core.pretrained import describe_vseq2pc_weights, resolve_vseq2pc_weights
 from lcpr_core.vseq2pc import Vseq2pcMap, Vseq2pcNet
 from lcpr_core.vseq2pc.detector import CameraFrame, LabelledScan, SequenceDetector
 from ros_common.diagnostics import DiagnosticsBuilder, Health
@@ -77,15 +77,16 @@ class CameraItem:
     arrival: float
 
 
-def build_net(cfg: NodeConfig) -> Vseq2pcNet:
+def build_net(cfg: NodeConfig) -> tuple[Vseq2pcNet, tuple[str, str] | None]:
+    """The networks of the model.* parameters and the weight files they came from (None: seeded)."""
     m = cfg.model
     try:
         if m.threads:
             torch.set_num_threads(m.threads)
         files = resolve_vseq2pc_weights(m.sequence, m.descriptor)
         if files is not None:
-            return Vseq2pcNet.from_files(sequence=files[0], descriptor=files[1], device=m.device)
-        return Vseq2pcNet.seeded(m.seed, device=m.device)
+            return Vseq2pcNet.from_files(sequence=files[0], descriptor=files[1], device=m.device), files
+        return Vseq2pcNet.seeded(m.seed, device=m.device), None
     except Exception as err:  # noqa: BLE001 - files, formats, devices: all refuse the start
         raise ConfigError(f"cannot build the VSeq2PC networks from the model.* parameters: {err}") from err
 
@@ -104,9 +105,9 @@ class Vseq2pcNode(NodeStats, Node):
         self.queries = 0
         self._closed = False
 
-        self.net = build_net(cfg)
-        log.info(f"VSeq2PC: {describe_vseq2pc_weights(cfg.model.sequence, cfg.model.descriptor)}")
-        if cfg.model.sequence == SEEDED:
+        self.net, files = build_net(cfg)
+        log.info(f"VSeq2PC: {describe_vseq2pc_weights(files)}")
+        if files is None:
             log.warning(f"model.sequence and model.descriptor are seeded: random weights (seed {cfg.model.seed}), "
                         "for testing only; matches mean nothing")
         if cfg.extrinsics == ExtrinsicsConfig():

@@ -286,7 +286,7 @@ def _networks(args: argparse.Namespace) -> list[tuple[str, Vseq2pcNet]]:
         files = resolve_vseq2pc_weights(name, name)
         assert files is not None  # a bundled name always resolves to files (or raises)
         seq_file, desc_file = files
-        print(f"vseq2pc_eval: {describe_vseq2pc_weights(name, name)}", file=sys.stderr)
+        print(f"vseq2pc_eval: {describe_vseq2pc_weights(files)}", file=sys.stderr)
         if args.name == "trained":
             args.name = name
     nets.append((args.name, Vseq2pcNet.from_files(sequence=seq_file, descriptor=desc_file)))
