@@ -48,8 +48,9 @@ setup(
         # nvJPEG decoding on a GPU (model.decode auto / nvjpeg): the torchvision built for the user's CUDA torch;
         # imported only with model.device cuda (PyPI's CPU torchvision does not import beside the CPU torch pin).
         "gpu": ["torchvision>=0.19"],
-        # The registration comparison in benchmarks/tools/registration_compare.py.
-        "compare": ["kiss-icp>=1.0"],
+        # The registration comparison in benchmarks/tools/registration_compare.py, and the global alignment study
+        # benchmarks/studies/global_registration.py (open3d-cpu: 105 MB; on Debian it also needs libusb-1.0-0).
+        "compare": ["kiss-icp>=1.0", "kiss-matcher>=1.0", "open3d-cpu>=0.18"],
         # LiDAR odometry for the back end: the lcpr_kiss_icp node and benchmarks/tools/backend_ate.py.
         "odometry": ["kiss-icp>=1.0"],
         # Tests, and the linter and type checker CI runs before them (pinned: a new release may

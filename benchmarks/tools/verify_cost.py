@@ -2,7 +2,7 @@
 
     python benchmarks/tools/verify_cost.py [--queries 30] [--candidates 10] [--frames 160]
 
-A synthetic nuScenes-rig drive (city seed 3, 32-beam LiDAR, 3072-point compact clouds).
+A synthetic nuScenes-rig drive (city seed 3, 32-beam LiDAR, compact clouds capped at ``--max-points``).
 For each revisiting keyframe, the ``--candidates`` earlier keyframes *nearest in position*
 (at least 20 keyframes older) are verified: a harder mix than retrieval's top 10, since
 near candidates are the ones that reach the fine stage. Per keyframe the time covers
@@ -25,7 +25,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--queries", type=int, default=30)
     p.add_argument("--candidates", type=int, default=10)
     p.add_argument("--repeats", type=int, default=3, help="passes over the queries (the first one warms up)")
+    p.add_argument("--max-points", type=int, default=None, help="compact cloud cap (default: CloudConfig's)")
     args = p.parse_args(argv)
+
+    from dataclasses import replace
 
     from tqdm import tqdm
 
@@ -35,7 +38,10 @@ def main(argv: list[str] | None = None) -> int:
 
     seq = SyntheticLidar("nuscenes", 3, args.frames)
     true, _ = synthetic_pairs(seq, far_random=1, seed=3)
-    verifier = GeometricVerifier(VerifierConfig())
+    config = VerifierConfig()
+    if args.max_points is not None:
+        config = replace(config, cloud=replace(config.cloud, max_points=args.max_points))
+    verifier = GeometricVerifier(config)
     compact = [verifier.compact(seq.points(i)) for i in tqdm(range(len(seq)), desc="compact clouds")]
     positions = seq.poses[:, :3, 3]
     queries = np.unique(true[:, 0])[: args.queries]

@@ -49,8 +49,10 @@ class PreparedCloud:
     tree: small_gicp.KdTree | None
     context: np.ndarray  # Scan Context for the yaw guess
     normals: np.ndarray  # M x 3 unit normals (smallest principal axis of each point's neighbourhood)
-    coarse: small_gicp.PointCloud | None = None  # the cloud at verify.coarse_voxel, for the coarse stage
+    coarse: small_gicp.PointCloud | None = None  # about verify.coarse_points points, for the coarse stage
     coarse_tree: small_gicp.KdTree | None = None
+    fine: small_gicp.PointCloud | None = None  # about verify.fine_points points (or ``cloud``), for the fine stage
+    fine_tree: small_gicp.KdTree | None = None
     _bev: BevMatcher | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
@@ -73,7 +75,7 @@ class Verification:
     fitness: float  # overlap: the mean of both clouds' inlier shares (see _overlap)
     rmse: float = math.inf  # m, of the query's inliers
     covariance: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.nan))
-    correction_m: float = math.nan  # how far registration moved from its initial guess
+    correction_m: float = math.nan  # how far the fine stage moved from the coarse pose it started from
     correction_deg: float = math.nan
     constraint: float = 0.0  # point-to-plane observability of the inliers, 0 (degenerate) .. 1/3 (_constraint)
     initial: np.ndarray = field(default_factory=lambda: np.eye(4))  # the initial guess the result came from
@@ -95,6 +97,7 @@ class _Registered:
     error: float
     inliers: int
     initial: np.ndarray
+    coarse: np.ndarray  # the coarse stage's pose the fine stage started from
     constraint: float  # see _constraint
 
 
@@ -110,35 +113,39 @@ class GeometricVerifier:
         return compact_cloud(points, self.config.cloud)
 
     def prepare(self, compact_xyz: np.ndarray) -> PreparedCloud:
-        """Covariances, k-d tree and polar context of a compact cloud (M x 3)."""
+        """Covariances, k-d trees, normals and polar context of a compact cloud (M x 3)."""
         xyz = np.ascontiguousarray(np.asarray(compact_xyz, np.float64).reshape(-1, 3))
-        threads = self.config.num_threads
-        if len(xyz) < max(self.config.min_points, _NEIGHBOURS):
+        cfg = self.config
+        threads = cfg.num_threads
+        if len(xyz) < max(cfg.min_points, _NEIGHBOURS):
             return PreparedCloud(xyz=xyz, cloud=None, tree=None, context=polar_context(xyz), normals=np.zeros_like(xyz))
         cloud = small_gicp.PointCloud(xyz)
         tree = small_gicp.KdTree(cloud, num_threads=threads)
         small_gicp.estimate_normals_covariances(cloud, tree, num_neighbors=_NEIGHBOURS, num_threads=threads)
         normals = np.asarray(cloud.normals())[:, :3]
-        coarse = self._coarse_cloud(cloud)
-        coarse_tree = small_gicp.KdTree(coarse, num_threads=threads)
-        small_gicp.estimate_covariances(coarse, coarse_tree, num_neighbors=_NEIGHBOURS, num_threads=threads)
+        fine, fine_tree = cloud, tree
+        if len(xyz) > 1.4 * cfg.fine_points:
+            fine, fine_tree = self._resampled(cloud, cfg.cloud.voxel, cfg.fine_points)
+        coarse, coarse_tree = self._resampled(fine, cfg.coarse_voxel, cfg.coarse_points)
         return PreparedCloud(xyz=xyz, cloud=cloud, tree=tree, context=polar_context(xyz), normals=normals,
-                             coarse=coarse, coarse_tree=coarse_tree)
+                             coarse=coarse, coarse_tree=coarse_tree, fine=fine, fine_tree=fine_tree)
 
-    def _coarse_cloud(self, cloud: small_gicp.PointCloud) -> small_gicp.PointCloud:
-        """The cloud voxelised to about ``coarse_points`` points, starting from ``coarse_voxel``.
+    def _resampled(self, cloud: small_gicp.PointCloud, voxel: float, points: int
+                   ) -> tuple[small_gicp.PointCloud, small_gicp.KdTree]:
+        """The cloud voxelised to about ``points`` points (starting from ``voxel``), with its tree and covariances.
 
         Surface points scale with 1 / voxel^2, so one rescaled resampling lands close. A fixed
         voxel would leave a narrow-field sensor (a Livox sees ~70 deg) a few hundred points,
         too few for GICP's local covariances, and a 360 deg sensor thousands, which only cost time.
         """
         cfg = self.config
-        coarse = small_gicp.voxelgrid_sampling(cloud, cfg.coarse_voxel)  # single thread: deterministic
-        ratio = coarse.size() / cfg.coarse_points
+        out = small_gicp.voxelgrid_sampling(cloud, voxel)  # single thread: deterministic
+        ratio = out.size() / points
         if not 0.7 <= ratio <= 1.4:
-            voxel = max(cfg.coarse_voxel * math.sqrt(ratio), cfg.cloud.voxel)
-            coarse = small_gicp.voxelgrid_sampling(cloud, voxel)
-        return coarse
+            out = small_gicp.voxelgrid_sampling(cloud, max(voxel * math.sqrt(ratio), cfg.cloud.voxel))
+        tree = small_gicp.KdTree(out, num_threads=cfg.num_threads)
+        small_gicp.estimate_covariances(out, tree, num_neighbors=_NEIGHBOURS, num_threads=cfg.num_threads)
+        return out, tree
 
     # -- verification ----------------------------------------------------------------------
     def verify(self, query_xyz: np.ndarray, match_xyz: np.ndarray, initial_guess: np.ndarray | None = None
@@ -206,9 +213,10 @@ class GeometricVerifier:
             return -1.0, T0, T0
         return self._overlap(query, match, T, stride=_COARSE_STRIDE)[0], T, T0
 
-    def _fine(self, query: PreparedCloud, match: PreparedCloud, T: np.ndarray, T0: np.ndarray) -> _Registered:
+    def _fine(self, query: PreparedCloud, match: PreparedCloud, start: np.ndarray, T0: np.ndarray) -> _Registered:
         cfg = self.config
-        fine = small_gicp.align(match.cloud, query.cloud, match.tree, init_T_target_source=T,
+        assert query.fine is not None and match.fine is not None
+        fine = small_gicp.align(match.fine, query.fine, match.fine_tree, init_T_target_source=start,
                                 registration_type=cfg.registration, num_threads=cfg.num_threads,
                                 max_iterations=cfg.max_iterations, max_correspondence_distance=cfg.fine_distance)
         T = np.asarray(fine.T_target_source, np.float64)
@@ -219,7 +227,7 @@ class GeometricVerifier:
             fitness, rmse = self._overlap(query, match, T, query_side=(q_in_m, idx, near))
             constraint = _constraint(q_in_m[near], match.normals[idx[near]])
         return _Registered(T, fitness, rmse, np.asarray(fine.H, np.float64), float(fine.error), int(fine.num_inliers),
-                           T0, constraint)
+                           T0, start, constraint)
 
     def _overlap(self, query: PreparedCloud, match: PreparedCloud, T: np.ndarray, *, stride: int = 1,
                  query_side: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> tuple[float, float]:
@@ -244,7 +252,7 @@ class GeometricVerifier:
 
     def _judge(self, best: _Registered) -> Verification:
         cfg = self.config
-        delta = np.linalg.inv(best.initial) @ best.T
+        delta = np.linalg.inv(best.coarse) @ best.T  # the registration's own consistency, not a guess's accuracy
         correction_m = float(np.linalg.norm(delta[:3, 3]))
         correction_deg = float(rotation_angle_deg(delta[:3, :3]))
         constraint = best.constraint
