@@ -5,10 +5,10 @@
     g.add_loop(query_stamp, match_stamp, match_T_query, covariance)   # False: rejected as inconsistent
     g.pose(stamp), g.trajectory(), g.map_T_odom(), g.stats(), g.save(path), PoseGraphBackend.load(path)
 
-GTSAM iSAM2 (an optional extra: ``pip install gtsam``) holds one ``Pose3`` per graph node; every
-stamp is in seconds, every pose a 4 x 4 ``world_T_base``, every covariance 6 x 6 in the ROS order
-and meaning of :mod:`lcpr_core.posegraph` ((x, y, z, roll, pitch, yaw), errors in the parent frame),
-turned into GTSAM's with :func:`~lcpr_core.posegraph.to_gtsam_covariance`.
+GTSAM iSAM2 (an optional extra: ``pip install gtsam``; QR factorisation, see ``_new_isam``) holds one
+``Pose3`` per graph node; every stamp is in seconds, every pose a 4 x 4 ``world_T_base``, every
+covariance 6 x 6 in the ROS order and meaning of :mod:`lcpr_core.posegraph` ((x, y, z, roll, pitch,
+yaw), errors in the parent frame), turned into GTSAM's with :func:`~lcpr_core.posegraph.to_gtsam_covariance`.
 
 Nodes (keyframing). A 10 Hz odometry does not get a node per message: a message becomes a node when
 the vehicle moved ``keyframes.distance`` m or turned ``keyframes.angle_deg`` since the last node, or
@@ -465,6 +465,11 @@ class PoseGraphBackend:
         params.setRelinearizeThreshold(float(self.config.relinearize_threshold))
         params.relinearizeSkip = 1
         params.enablePartialRelinearizationCheck = True  # check only the cliques an update touched
+        # QR, not Cholesky: standing still while turning (a handheld sensor, a robot turning in place) gives
+        # node steps known to a fraction of a millimetre in position but only to tenths of a degree in
+        # rotation; after a few dozen such nodes Cholesky of the normal equations declared the system
+        # indeterminate (livox_hku/campus, 144 nodes), while QR of the Jacobian solves it
+        params.setFactorization("QR")
         return self._gtsam.ISAM2(params)
 
     def _add_first_node(self, row: int) -> None:

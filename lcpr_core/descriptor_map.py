@@ -1,8 +1,8 @@
 """A growing map of place descriptors backed by FAISS, with per-entry metadata.
 
 Memory: the descriptors are held once, inside the FAISS index (N * D * 4 bytes;
-~1.02 GB for 1M x 256). Metadata costs 44 bytes per entry (id 8, stamp 8, pose 24,
-source code 4) in numpy arrays grown by doubling, so up to twice that while
+~1.02 GB for 1M x 256). Metadata costs 76 bytes per entry (id 8, stamp 8, position 24,
+orientation 32, source code 4) in numpy arrays grown by doubling, so up to twice that while
 growing. "hnsw" adds its graph (~2 * hnsw_m * 4 bytes per entry, ~0.3 GB for 1M at
 m=32). ``descriptors`` returns a copy; everything else reads FAISS storage in place.
 
@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .errors import LcprError, MapError, MapSchemaError
+from .geometry import quaternions_xyzw, rotations_from_xyzw
 from .growable import GrowableArray
 from .map_file import check_header_fields, read_map_file, write_map_file
 from .map_rows import MapRows, RowAccess
@@ -29,11 +30,15 @@ from .verification.clouds import CloudStore
 __all__ = ["MapConfig", "Match", "DescriptorMap", "INDEX_TYPES", "SCHEMA_VERSION"]
 
 INDEX_TYPES: tuple[str, ...] = ("flat", "hnsw")
-SCHEMA_VERSION = 2  # 2: keyframe clouds (cloud_ids, cloud_counts, cloud_points); version 1 files still load
-_READABLE_VERSIONS = (1, 2)
+# 2: keyframe clouds (cloud_ids, cloud_counts, cloud_points); 3: orientations (the full odometry pose, for
+# submaps). Version 1 and 2 files still load (their orientations unknown: NaN).
+SCHEMA_VERSION = 3
+_READABLE_VERSIONS = (1, 2, 3)
 _FORMAT = "lcpr_core.descriptor_map"
 _NPZ_KEYS = ("descriptors", "ids", "stamps", "poses", "source_codes")
 _CLOUD_KEYS = ("cloud_ids", "cloud_counts", "cloud_points")
+_ORIENTATIONS = "orientations"  # (N, 4) unit quaternions x, y, z, w of world_T_base; schema version >= 3
+_ROTATION_TOLERANCE = 1e-4  # how far from orthonormal (det +1) a pose's rotation block may be
 # A filtered search over at most this many allowed rows is done exactly (brute force).
 _EXACT_FALLBACK_ROWS = 16384
 
@@ -87,6 +92,10 @@ class Match:
 class DescriptorMap(RowAccess):
     """Place descriptors (N x D float32) with id, stamp, pose and source per entry.
 
+    A pose is a position (``poses``, N x 3) and, when the full odometry pose was given, an orientation
+    (``orientations``, N x 4 quaternions): :meth:`pose_matrices` rebuilds world_T_base for the local
+    submaps of :mod:`lcpr_core.verification.submap`.
+
     Ids are int64, assigned consecutively from max id + 1 (0 for an empty map)
     unless given; they survive save/load. Entries are never removed.
     Not thread-safe: share one map between threads behind a lock.
@@ -99,6 +108,7 @@ class DescriptorMap(RowAccess):
         self._index, self._storage = _make_index(self._config)
         self._ef_search = self._config.hnsw_ef_search
         self._rows = MapRows((3,))  # ids, stamps, poses (lcpr_core.map_rows)
+        self._orientations = GrowableArray(np.float64, (4,))  # x, y, z, w of world_T_base; NaN = unknown
         self._source_codes = GrowableArray(np.int32)
         self._source_names: list[str] = []
         self._source_lookup: dict[str, int] = {}
@@ -124,6 +134,38 @@ class DescriptorMap(RowAccess):
         return [names[c] for c in self._source_codes.view().tolist()]
 
     @property
+    def source_codes(self) -> np.ndarray:
+        """(N,) int32 index into the source names per entry; read-only, O(1) (``sources`` builds a list)."""
+        return self._source_codes.view()
+
+    @property
+    def orientations(self) -> np.ndarray:
+        """(N, 4) float64 unit quaternions (x, y, z, w) of each entry's world_T_base; NaN where only the
+        position (or nothing) was given. Read-only."""
+        return self._orientations.view()
+
+    def pose_matrices(self, rows: slice | Sequence[int] | np.ndarray) -> np.ndarray:
+        """(K, 4, 4) world_T_base of the entries at ``rows`` (positions in insertion order, not ids); all NaN
+        where the position or the orientation is unknown."""
+        at = rows if isinstance(rows, slice) else np.asarray(rows, np.int64)
+        p, q = self._rows.poses[at], self.orientations[at]
+        out = np.zeros((len(p), 4, 4))
+        out[:, :3, :3] = rotations_from_xyzw(q)
+        out[:, :3, 3] = p
+        out[:, 3, 3] = 1.0
+        out[~(np.isfinite(p).all(axis=1) & np.isfinite(q).all(axis=1))] = np.nan
+        return out
+
+    def row_of(self, keyframe_id: int) -> int | None:
+        """The row (insertion position) of an id, or None when the map lacks it."""
+        ids = self._rows.ids
+        if self._rows.ids_increasing:
+            row = int(np.searchsorted(ids, keyframe_id))
+            return row if row < len(ids) and ids[row] == keyframe_id else None
+        found = np.flatnonzero(ids == keyframe_id)
+        return int(found[0]) if len(found) else None
+
+    @property
     def descriptors(self) -> np.ndarray:
         """(N, D) float32 copy of the stored descriptors."""
         return self._xb().copy()
@@ -146,19 +188,22 @@ class DescriptorMap(RowAccess):
     ) -> np.ndarray:
         """Append one (D,) or many (N, D) descriptors; returns their (N,) int64 ids.
 
-        stamps: (N,) seconds (a float for one descriptor). poses: (N, 3) or (3,),
-        NaN for unknown. sources: one name for all, or one per entry. ids: (N,)
-        non-negative, unique and not yet in the map; default max id + 1 onwards.
+        stamps: (N,) seconds (a float for one descriptor). poses: positions (N, 3) or (3,), or full
+        world_T_base poses (N, 4, 4) or (4, 4) (position and orientation kept); NaN for unknown.
+        sources: one name for all, or one per entry. ids: (N,) non-negative, unique and not yet in
+        the map; default max id + 1 onwards.
         """
         x = self._check_vectors(descriptors, "descriptors")  # (N, D)
         n = len(x)
-        new_ids, t, p = self._rows.check(n, stamps=stamps, poses=poses, ids=ids)  # (N,), (N,), (N, 3)
+        positions, q = _split_poses(poses, n)
+        new_ids, t, p = self._rows.check(n, stamps=stamps, poses=positions, ids=ids)  # (N,), (N,), (N, 3)
         src = _check_sources(sources, n)
         if n == 0:
             return new_ids
         codes = np.fromiter((self._source_code(s) for s in src), dtype=np.int32, count=n)
         self._index.add(x)
         self._rows.append(new_ids, t, p)
+        self._orientations.extend(q)
         self._source_codes.extend(codes)
         return new_ids.copy()
 
@@ -307,6 +352,7 @@ class DescriptorMap(RowAccess):
             "ids": self._rows.ids,
             "stamps": self._rows.stamps,
             "poses": self._rows.poses,
+            _ORIENTATIONS: self.orientations,
             "source_codes": self._source_codes.view(),
             **self.clouds.to_arrays(),
         }
@@ -322,7 +368,7 @@ class DescriptorMap(RowAccess):
         """
         where = os.fspath(path)
         header, data = read_map_file(where, kind="map file", file_format=_FORMAT, versions=_READABLE_VERSIONS,
-                                     required=_NPZ_KEYS, optional_group=_CLOUD_KEYS)
+                                     required=_NPZ_KEYS, optional_group=_CLOUD_KEYS, optional=(_ORIENTATIONS,))
         check_header_fields(header, (("dim", int), ("model", str), ("index", str), ("count", int),
                                      ("sources", list)), kind="map file", where=where)
         if not all(isinstance(name, str) for name in header["sources"]):
@@ -335,6 +381,7 @@ class DescriptorMap(RowAccess):
             )
         config = expect if expect is not None else _config_from_header(header, where)
         x, ids, stamps, poses, codes = _check_arrays(data, header, where)
+        orientations = _check_orientations(data, header, where)
 
         weights = header.get("weights_id", "")  # maps saved before it was recorded have none
         if not isinstance(weights, str):
@@ -343,6 +390,7 @@ class DescriptorMap(RowAccess):
         if len(x):
             out._index.add(x)
         out._rows.append(ids, stamps, poses)
+        out._orientations.extend(orientations)
         out._source_codes.extend(codes)
         out._source_names = list(header["sources"])
         out._source_lookup = {name: i for i, name in enumerate(out._source_names)}
@@ -405,6 +453,60 @@ def _check_windows(exclude_after: float | ArrayLike | None, q: int) -> np.ndarra
         raise MapError("exclude_after is NaN; expected a stamp in seconds (inf allowed)")
     return arr
 
+
+
+def _split_poses(poses: ArrayLike | None, n: int) -> tuple[ArrayLike | None, np.ndarray]:
+    """(positions for MapRows.check, (n, 4) orientations) of what ``add`` was given: positions (n, 3) / (3,)
+    pass through with unknown orientations; full poses (n, 4, 4) / (4, 4) are split, their rotation
+    blocks checked (rows of NaN: unknown)."""
+    unknown = np.full((n, 4), np.nan)
+    if poses is None:
+        return None, unknown
+    try:
+        arr = np.asarray(poses, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise MapError(f"poses cannot be read as floats: {err}") from err
+    if arr.shape[-2:] != (4, 4):
+        return arr, unknown
+    if arr.shape == (4, 4) and n == 1:
+        arr = arr[None]
+    if arr.shape != (n, 4, 4):
+        raise MapError(f"poses of shape {arr.shape} do not fit {n} descriptors; expected ({n}, 3) positions or "
+                       f"({n}, 4, 4) world_T_base")
+    known = np.isfinite(arr).all(axis=(1, 2))
+    partly = ~known & ~np.isnan(arr).all(axis=(1, 2))
+    if partly.any():
+        raise MapError(f"poses {np.flatnonzero(partly)[:5].tolist()} are partly unknown (NaN or inf); give a "
+                       "finite 4 x 4 world_T_base or all NaN")
+    r = arr[known, :3, :3]
+    off = np.abs(np.swapaxes(r, 1, 2) @ r - np.eye(3)).max(axis=(1, 2), initial=0.0) > _ROTATION_TOLERANCE
+    off |= np.linalg.det(r) <= 0
+    if off.any():
+        bad = np.flatnonzero(known)[off]
+        raise MapError(f"poses {bad[:5].tolist()} are not rigid: their rotation block is not orthonormal with "
+                       "determinant +1")
+    q = unknown.copy()
+    q[known] = quaternions_xyzw(r)
+    return arr[:, :3, 3], q
+
+
+def _check_orientations(data: dict[str, np.ndarray], header: dict[str, Any], where: str) -> np.ndarray:
+    """(N, 4) orientations of a map file; all unknown (NaN) for a version that did not store them."""
+    n = header["count"]
+    if _ORIENTATIONS not in data:
+        if header["schema_version"] >= 3:
+            raise MapError(f"map file {where} (schema version {header['schema_version']}) lacks {_ORIENTATIONS}; "
+                           "expected (N, 4) quaternions")
+        return np.full((n, 4), np.nan)
+    q = data[_ORIENTATIONS]
+    if q.shape != (n, 4) or q.dtype.kind != "f":
+        raise MapError(f"map file {where}: {_ORIENTATIONS} has shape {q.shape} dtype {q.dtype}; expected ({n}, 4) "
+                       "floats")
+    q = q.astype(np.float64)
+    known = np.isfinite(q).all(axis=1)
+    if (~known & ~np.isnan(q).all(axis=1)).any() or (np.abs(np.linalg.norm(q[known], axis=1) - 1.0) > 1e-6).any():
+        raise MapError(f"map file {where}: {_ORIENTATIONS} holds rows that are neither unit quaternions nor all NaN")
+    return q
 
 
 def _config_from_header(header: dict[str, Any], where: str) -> MapConfig:

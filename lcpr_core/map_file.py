@@ -36,9 +36,10 @@ def write_map_file(path: str | os.PathLike[str], header: Mapping[str, Any], arra
 
 
 def read_map_file(path: str | os.PathLike[str], *, kind: str, file_format: str, versions: Sequence[int],
-                  required: Sequence[str], optional_group: Sequence[str] = ()
+                  required: Sequence[str], optional_group: Sequence[str] = (), optional: Sequence[str] = ()
                   ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """(header, arrays) of a file :func:`write_map_file` wrote; ``optional_group``: all of them or none."""
+    """(header, arrays) of a file :func:`write_map_file` wrote; ``optional_group``: all of them or none;
+    ``optional``: each read when present (a member older versions lack; the caller checks the version)."""
     where = os.fspath(path)
     if not os.path.exists(where):
         raise MapError(f"{kind} {where} does not exist")
@@ -60,6 +61,7 @@ def read_map_file(path: str | os.PathLike[str], *, kind: str, file_format: str, 
             present = [key for key in optional_group if key in npz.files]
             if present and len(present) != len(optional_group):
                 raise MapError(f"{kind} {where} holds {', '.join(present)} but not all of {', '.join(optional_group)}")
+            present += [key for key in optional if key in npz.files]
             arrays = {key: npz[key] for key in (*required, *present)}
             raw_header = npz["header"]
     except MapError:

@@ -28,11 +28,12 @@ import numpy as np
 
 from .errors import InputShapeError, InvalidValueError
 from .exclusion import matchable
+from .growable import GrowableArray
 from .points import finite_xyz
 
 __all__ = [
     "RING_KEYS", "ScanContextConfig", "ScanContextMatch", "ScanContextMatcher", "ScanContextResult",
-    "rank_database", "ring_key", "sc_distance", "scan_context",
+    "ScanContextRows", "rank_database", "ring_key", "sc_distance", "scan_context",
 ]
 
 RING_KEYS = ("occupancy", "mean")
@@ -258,6 +259,56 @@ class ScanContextMatcher:
         new_id = self.add(sc, stamp=stamp, position=position)
         timings["add"] = time.perf_counter() - tic
         return ScanContextResult(id=new_id, matches=matches, timings=timings)
+
+
+class ScanContextRows:
+    """Scan contexts kept in the rows of another store (the loop detector's map), searched among its first rows.
+
+    Row ``i`` here is row ``i`` there, so the store's own exclusion (its newest rows) carries over as
+    ``rows``. An empty scan context (no point in range, or a row that has none) is never proposed.
+    """
+
+    def __init__(self, config: ScanContextConfig | None = None) -> None:
+        self.config = cfg = config if config is not None else ScanContextConfig()
+        self._scs = GrowableArray(np.float32, (cfg.num_rings, cfg.num_sectors))
+        self._keys = GrowableArray(np.float32, (cfg.num_rings,))
+        self._occupied = GrowableArray(np.bool_)
+
+    def __len__(self) -> int:
+        return len(self._scs)
+
+    def describe(self, points: np.ndarray) -> np.ndarray:
+        return scan_context(points, config=self.config)
+
+    def add(self, sc: np.ndarray | None) -> int:
+        """Append one row (None: a row without a scan context); returns its row."""
+        cfg = self.config
+        m = np.zeros((cfg.num_rings, cfg.num_sectors), np.float32) if sc is None else _check_sc(sc, "sc")
+        if m.shape != (cfg.num_rings, cfg.num_sectors):
+            raise InputShapeError(f"sc has shape {m.shape}; these rows hold {cfg.num_rings} x {cfg.num_sectors}")
+        self._scs.extend(m[None])
+        self._keys.extend(ring_key(m, kind=cfg.ring_key)[None])
+        self._occupied.extend(np.array([bool(m.any())]))
+        return len(self) - 1
+
+    def search(self, sc: np.ndarray, *, rows: int, k: int, max_distance: float = 1.0) -> list[tuple[int, float]]:
+        """(row, sc_distance) of the best ``k`` among rows ``[0, rows)``, nearest first, distances <= max_distance.
+
+        The ``config.candidates`` nearest ring keys (at least ``k``) are compared under every column shift.
+        """
+        q = _check_sc(sc, "sc")
+        if k < 1:
+            raise InvalidValueError(f"k={k}; it must be at least 1")
+        allowed = np.flatnonzero(self._occupied.view()[: max(0, min(rows, len(self)))])
+        if len(allowed) == 0 or not q.any():
+            return []
+        key = ring_key(q, kind=self.config.ring_key)
+        key_d = ((self._keys.view()[allowed] - key[None, :]) ** 2).sum(axis=1)
+        c = min(max(self.config.candidates, k), len(allowed))
+        near = allowed[np.argpartition(key_d, c - 1)[:c]] if c < len(allowed) else allowed
+        scs = self._scs.view()
+        scored = sorted((float(_all_shifts(q, scs[row]).min()), int(row)) for row in near.tolist())
+        return [(row, d) for d, row in scored[:k] if d <= max_distance]
 
 
 def rank_database(

@@ -19,6 +19,13 @@ base_T_lidar comes from /tf_static, ``base_frame`` to the clouds' frame, identit
 has no such transform, as for KITTI-style bags where base = LiDAR). The verified loops are also
 added to a pose graph over a seeded drift of the ground truth
 (:func:`lcpr_core.loop_report.pose_graph_proof`, GTSAM): ATE before and after, and posegraph.png.
+
+``odometry="kiss-icp"`` (``lcpr_eval --odometry kiss-icp``): the detector's poses come from KISS-ICP run
+on the bag's own clouds (every frame, in order, started at the bag's first pose), as on a robot without
+another odometry; the bag's odometry stays the ground truth. The KISS-ICP odometry and every verified
+candidate are then replayed through the online back end (:mod:`lcpr_core.backend_replay`): ATE RMSE before
+and after against the bag's odometry (``report.backend``) and backend.png. The default, ``"bag"``, hands
+the detector the bag's odometry, as before.
 """
 from __future__ import annotations
 
@@ -36,6 +43,7 @@ from typing import Any, Generic, TypeVar, cast
 import numpy as np
 
 from lcpr_common.progress import progress_bar
+from lcpr_core.backend_replay import BackendEvaluation, StreamRecorder, evaluate_backend
 from lcpr_core.errors import InvalidValueError, LcprError
 from lcpr_core.evaluation import (
     EvaluationReport,
@@ -52,11 +60,12 @@ from lcpr_core.keyframes import KeyframeConfig
 from lcpr_core.lcpr.describer import Describer, ModelConfig
 from lcpr_core.lcpr.detector import Candidate, DetectorConfig, Frame, LoopDetector, MatchConfig, Result
 from lcpr_core.lcpr.preprocess.camera import CameraInput
+from lcpr_core.lidar_odometry import KissConfig, KissOdometry
 from lcpr_core.loop_report import PublishedLoop, pose_graph_proof
 from lcpr_core.posegraph import DriftModel
 from lcpr_core.pretrained import effective_max_distance
 from lcpr_core.scan_context import ScanContextConfig, ScanContextMatcher, rank_database
-from lcpr_core.verification import VerifierConfig
+from lcpr_core.verification import SubmapConfig, VerifierConfig
 from msg_tools.bags import read_frames, read_static_transforms
 from msg_tools.errors import MsgToolsError
 from msg_tools.frames import KITTI_TOPICS, NUSCENES_TOPICS, SensorFrame, Topics
@@ -71,6 +80,8 @@ COLLECT_ALL = 2.0 + 1e-3  # unit descriptors are at most 2 apart: every candidat
 N_VALUES = (1, 5, 10)
 OUTPUT_FILES = ("report.json", "pr_curve.png", "latency.png", "trajectory.png")
 POSEGRAPH_FILE = "posegraph.png"  # written besides OUTPUT_FILES when the pose-graph proof ran
+BACKEND_FILE = "backend.png"  # written besides OUTPUT_FILES with odometry="kiss-icp"
+ODOMETRY_SOURCES = ("bag", "kiss-icp")  # what gives the detector its poses
 
 
 @dataclass(frozen=True)
@@ -91,13 +102,17 @@ class EvalOptions:
     warmup: int = 5  # keyframes left out of the latency statistics
     split_offset: float | None = None  # s after the first keyframe where database/query split; None = first revisit
     verify: VerifierConfig = field(default_factory=VerifierConfig)  # enabled=False: retrieval only
+    submap: SubmapConfig = field(default_factory=SubmapConfig)  # local submaps verified instead of single scans
     base_frame: str = BASE_FRAME  # the odometry's child frame: base_T_lidar = /tf_static base_frame -> cloud frame
     drift_seed: int = 0  # seed of the odometry drift of the pose-graph proof
     pose_graph: bool = True  # run the pose-graph proof with the verified loops (needs gtsam)
     batch: int = 1  # frames whose keyframes are described in one network call (matched in order, as online)
     lidar_only: bool = False  # no cameras read: every frame described with all camera slots empty
+    odometry: str = "bag"  # the detector's poses: the bag's odometry, or "kiss-icp" on its clouds (then the back end)
 
     def __post_init__(self) -> None:
+        if self.odometry not in ODOMETRY_SOURCES:
+            raise InvalidValueError(f"odometry={self.odometry!r}; accepted: {', '.join(ODOMETRY_SOURCES)}")
         MatchConfig(max_distance=self.max_distance)  # a distance >= 0 or AUTO_DISTANCE, refused as the node does
         for name in ("exclude_recent_s", "sc_max_distance", "slop", "limit", "warmup", "drift_seed"):
             value = getattr(self, name)
@@ -133,6 +148,7 @@ class _RunRecord:
     lidar_frame: str | None = None  # frame id of the clouds (the first keyframe's)
     reasons: Counter = field(default_factory=Counter)
     degraded: int = 0
+    odometry: _KissRun | None = None  # odometry="kiss-icp": KISS-ICP on the clouds, the stream for the back end
 
     frames: int = 0
 
@@ -140,6 +156,49 @@ class _RunRecord:
     def positions(self) -> np.ndarray:
         """(N, 3) keyframe positions, NaN where unknown."""
         return np.asarray(self.poses, np.float64).reshape(-1, 4, 4)[:, :3, 3]
+
+
+class _KissRun:
+    """KISS-ICP over a bag's clouds: the detector's poses, and the stream the back end replays afterwards."""
+
+    def __init__(self, bag: str | os.PathLike[str], opts: EvalOptions) -> None:
+        self.bag, self.opts = bag, opts
+        self.odometry: KissOdometry | None = None
+        self.recorder: StreamRecorder | None = None
+        self.extrinsic_source = ""
+        self.seconds = 0.0
+
+    def step(self, frame: SensorFrame, det_frame: Frame) -> Frame:
+        """``det_frame`` with KISS-ICP's pose of its cloud (None without a cloud); the frame recorded."""
+        if det_frame.points is None:
+            return dataclasses.replace(det_frame, pose=None)
+        tic = time.perf_counter()
+        if self.odometry is None:
+            ext, self.extrinsic_source = base_T_lidar_of(self.bag, frame.lidar_frame_id,
+                                                         base_frame=self.opts.base_frame,
+                                                         tf_static=self.opts.topics.tf_static)
+            start = np.eye(4) if frame.pose is None else np.asarray(frame.pose, np.float64)
+            self.odometry = KissOdometry(KissConfig(threads=max(self.opts.model.threads, 1)), base_T_lidar=ext,
+                                         world_T_base0=start)
+            self.recorder = StreamRecorder(base_T_lidar=ext)
+        assert self.recorder is not None
+        pose = self.odometry.register(det_frame.points, frame.stamp)
+        self.recorder.add_frame(frame.stamp, odometry=pose, truth=frame.pose)
+        self.seconds += time.perf_counter() - tic
+        return dataclasses.replace(det_frame, pose=pose)
+
+    def result(self, det_frame: Frame, result: Result) -> None:
+        if self.recorder is not None and det_frame.points is not None:
+            self.recorder.add_result(result)
+
+    def evaluate(self) -> BackendEvaluation | None:
+        """The back end over the recorded stream; None when no frame had a cloud or no truth is known."""
+        if self.recorder is None or len(self.recorder) < 2:
+            return None
+        stream = self.recorder.stream(seconds={"kiss_icp": self.seconds})
+        if not np.isfinite(stream.truth).all(axis=(1, 2)).any():
+            return None
+        return evaluate_backend(stream, odometry_name="KISS-ICP")
 
 
 T = TypeVar("T")
@@ -218,12 +277,14 @@ def evaluate_bag(
     config = DetectorConfig(
         model=opts.model, keyframe=opts.keyframe,
         match=MatchConfig(top_k=max(N_VALUES), max_distance=COLLECT_ALL, exclude_recent_s=opts.exclude_recent_s),
-        verify=opts.verify,
+        verify=opts.verify, submap=opts.submap,
     )
     sc_cfg = None if opts.scan_context is None else dataclasses.replace(
         opts.scan_context, exclude_recent_s=opts.exclude_recent_s)
     matcher = None if sc_cfg is None else ScanContextMatcher(sc_cfg)
     record = _RunRecord(LoopDetector(config, describer=describer), matcher)
+    if opts.odometry == "kiss-icp":
+        record.odometry = _KissRun(bag, opts)
     setup = time.perf_counter() - start
     stream = read_frames(bag, topics=opts.topics, slop=opts.slop, decode_compressed=False,
                          min_cameras=0 if opts.lidar_only else 1)
@@ -260,6 +321,9 @@ def evaluate_bag(
     report = _evaluate(record, opts, sc_cfg, counts, os.fspath(bag))
     if opts.verify.enabled:
         report.verified = _verified(record, opts, report, bag)
+    if record.odometry is not None:
+        report.backend = record.odometry.evaluate()
+        report.counts["backend"] = "run" if report.backend is not None else "not run (no frame with a cloud and a pose)"
     report.wall_time_s, report.setup_time_s = time.perf_counter() - start, setup
     return report
 
@@ -316,9 +380,13 @@ def _verified(record: _RunRecord, opts: EvalOptions, report: EvaluationReport,
 def _steps(frames: list[SensorFrame], record: _RunRecord) -> None:
     """Frames through the detector (keyframes described in one batch), then recorded in order."""
     det_frames = [to_detector_frame(frame, cameras=record.detector.config.model.num_cameras) for frame in frames]
+    if record.odometry is not None:  # the detector runs on KISS-ICP's poses; the bag's stay the truth
+        det_frames = [record.odometry.step(frame, det) for frame, det in zip(frames, det_frames, strict=True)]
     for frame, det_frame, result in zip(frames, det_frames, record.detector.process_batch(det_frames),
                                         strict=True):
         _record(frame, det_frame, result, record)
+        if record.odometry is not None:
+            record.odometry.result(det_frame, result)
 
 
 def _record(frame: SensorFrame, det_frame: Frame, result: Result, record: _RunRecord) -> None:
@@ -389,8 +457,9 @@ def _evaluate(record: _RunRecord, opts: EvalOptions, sc_cfg: ScanContextConfig |
         "radius": opts.radius, "max_distance": max_distance, "sc_max_distance": opts.sc_max_distance,
         "scan_context": None if sc_cfg is None else dataclasses.asdict(sc_cfg), "slop": opts.slop,
         "limit": opts.limit, "warmup": opts.warmup, "n_values": list(N_VALUES), "split_offset": opts.split_offset,
-        "verify": dataclasses.asdict(opts.verify), "base_frame": opts.base_frame, "drift_seed": opts.drift_seed,
-        "pose_graph": opts.pose_graph,
+        "verify": dataclasses.asdict(opts.verify), "submap": dataclasses.asdict(opts.submap),
+        "base_frame": opts.base_frame, "drift_seed": opts.drift_seed, "pose_graph": opts.pose_graph,
+        "odometry": opts.odometry,
     }
     return EvaluationReport(source=source, settings=settings, counts=counts, ground_truth=gt, methods=methods)
 
@@ -409,7 +478,8 @@ def _descriptors(record: _RunRecord, row_of: dict[int, int]) -> np.ndarray | Non
 
 
 def write_outputs(report: EvaluationReport, out: str | os.PathLike[str]) -> list[Path]:
-    """report.json, the three figures and, when the pose-graph proof ran, posegraph.png into ``out``.
+    """report.json, the three figures, posegraph.png when the pose-graph proof ran and backend.png when the
+    back end ran (``odometry="kiss-icp"``) into ``out``.
 
     Returns the paths written.
     """
@@ -424,4 +494,8 @@ def write_outputs(report: EvaluationReport, out: str | os.PathLike[str]) -> list
         paths.append(folder / POSEGRAPH_FILE)
         proof.write_plot(paths[-1], title=f"{Path(report.source).name}: verified loops in a GTSAM pose graph "
                                           "(seeded odometry drift)")
+    if report.backend is not None:
+        paths.append(folder / BACKEND_FILE)
+        report.backend.write_plot(paths[-1], title=f"{Path(report.source).name}: {report.backend.odometry_name} "
+                                                   "odometry corrected by lcpr_backend with the verified loops")
     return paths

@@ -2,10 +2,12 @@
 
     lcpr_eval BAG [--weights FILE] [--precision P] [--runtime R] [--threads N] [--limit N] [--out DIR] ...
     lcpr_eval BAG --params-file config/lcpr.yaml [--weights FILE]      # exactly what lcpr_node would run
+    lcpr_eval BAG --odometry kiss-icp                                  # KISS-ICP poses, then the back end's ATE
 
 Builds :class:`lcpr_offline.lcpr_evaluate.EvalOptions` from the flags, or from the node's parameter file
 (:func:`lcpr_ros.params.settings_from_file`), and runs :func:`lcpr_offline.lcpr_evaluate.evaluate_bag`;
-writes report.json, pr_curve.png, latency.png, trajectory.png (and posegraph.png) into ``--out``.
+writes report.json, pr_curve.png, latency.png, trajectory.png (and posegraph.png; backend.png with
+``--odometry kiss-icp``) into ``--out``.
 Protocols: see :mod:`lcpr_core.evaluation`.
 """
 from __future__ import annotations
@@ -25,10 +27,11 @@ from lcpr_core.lcpr.preprocess import PRESETS
 from lcpr_core.lcpr.preprocess.cameras import DECODERS
 from lcpr_core.pretrained import SEEDED, command_weights, describe_weights, resolve_weights
 from lcpr_core.scan_context import ScanContextConfig
-from lcpr_core.verification import VerifierConfig
+from lcpr_core.verification import SUBMAP_MODES, SubmapConfig, VerifierConfig
 from lcpr_offline.lcpr_evaluate import (  # noqa: F401 - the evaluation's API, importable from the command's module too
     LIDAR_FOR_TOPICS,
     N_VALUES,
+    ODOMETRY_SOURCES,
     OUTPUT_FILES,
     TOPIC_PRESETS,
     EvalOptions,
@@ -108,12 +111,19 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     g.add_argument("--no-scan-context", action="store_true", help="skip the Scan Context baseline")
     g.add_argument("--no-verify", action="store_true",
                    help="no geometric verification against the LiDAR (retrieval only: no verified rows, no pose graph)")
+    g.add_argument("--submap", choices=SUBMAP_MODES, default=None,
+                   help="verify local submaps (keyframes stitched by the odometry), as submap.mode "
+                        f"(default {NODE.detector.submap.mode})")
     g.add_argument("--base-frame", default=BASE_FRAME,
                    help="odometry child frame; base_T_lidar is the /tf_static transform from it to the cloud frame "
                         f"(default {BASE_FRAME}; identity when the bag has none)")
     g.add_argument("--drift-seed", type=int, default=0,
                    help="seed of the pose-graph proof's odometry drift (default 0)")
     g.add_argument("--lidar-height", type=float, default=2.0, help="m added to z by Scan Context (default 2.0)")
+    g.add_argument("--odometry", choices=ODOMETRY_SOURCES, default="bag",
+                   help="the detector's poses: the bag's odometry (default), or kiss-icp run on the bag's clouds "
+                        "(the odometry extra), whose drift the back end then corrects with the verified loops: ATE "
+                        "before and after against the bag's odometry, and backend.png")
     g.add_argument("--quiet", action="store_true", help="no progress bar")
     g = p.add_argument_group("one configuration with the node")
     g.add_argument("--params-file", type=Path, default=None,
@@ -131,7 +141,7 @@ _FILE_SETTINGS = (("image_size", None), ("lidar", None), ("camera_topics", None)
                   ("keyframe_interval", NODE.detector.keyframe.min_interval),
                   ("keyframe_distance", NODE.detector.keyframe.min_distance),
                   ("precision", NODE.detector.model.precision), ("runtime", NODE.detector.model.runtime),
-                  ("decode", NODE.detector.model.decode))
+                  ("decode", NODE.detector.model.decode), ("submap", None))
 
 
 def options_from_params_file(args: argparse.Namespace) -> EvalOptions:
@@ -158,7 +168,7 @@ def options_from_params_file(args: argparse.Namespace) -> EvalOptions:
         topics=topics, model=dataclasses.replace(det.model, **overrides), keyframe=det.keyframe,
         exclude_recent_s=det.match.exclude_recent_s, max_distance=det.match.max_distance, slop=node.sync.slop,
         verify=dataclasses.replace(det.verify, enabled=det.verify.enabled and not args.no_verify),
-        **_evaluation_options(args),
+        submap=det.submap, **_evaluation_options(args),
     )
 
 
@@ -169,7 +179,7 @@ def _evaluation_options(args: argparse.Namespace) -> dict[str, Any]:
                 scan_context=None if args.no_scan_context else ScanContextConfig(lidar_height=args.lidar_height),
                 sc_max_distance=args.sc_max_distance, limit=args.limit, warmup=args.warmup,
                 split_offset=args.split_offset, base_frame=args.base_frame, drift_seed=args.drift_seed,
-                batch=args.batch, lidar_only=args.lidar_only or args.topics == "scans")
+                batch=args.batch, lidar_only=args.lidar_only or args.topics == "scans", odometry=args.odometry)
 
 
 def _without_cameras(topics: Topics) -> Topics:
@@ -203,7 +213,8 @@ def options_from_args(args: argparse.Namespace) -> EvalOptions:
         topics=topics, model=model,
         keyframe=KeyframeConfig(min_interval=args.keyframe_interval, min_distance=args.keyframe_distance),
         exclude_recent_s=args.exclude_recent, max_distance=args.max_distance, slop=args.slop,
-        verify=VerifierConfig(enabled=not args.no_verify), **_evaluation_options(args),
+        verify=VerifierConfig(enabled=not args.no_verify),
+        submap=SubmapConfig(mode=args.submap) if args.submap else NODE.detector.submap, **_evaluation_options(args),
     )
 
 
@@ -222,6 +233,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\nlcpr_eval {args.bag} ({report.wall_time_s:.1f} s)")
     print(summary_table(report, n_values=N_VALUES))
     print(throughput_line(report))
+    if report.backend is not None:
+        print(f"back end: {report.backend.text()}")
     if not (report.settings["model"]["weights"] or report.settings["model"]["imagenet"]):
         print("note: LCPR ran with random weights (--seeded): its numbers are not those of a trained model")
     print("written: " + ", ".join(str(p) for p in paths))

@@ -10,8 +10,10 @@ import math
 
 from lcpr_core.descriptor_map import INDEX_TYPES
 from lcpr_core.lcpr.describer import PRECISIONS, RUNTIMES
+from lcpr_core.lcpr.detector import MATCH_METHODS
 from lcpr_core.lcpr.preprocess import CUSTOM, PRESETS
 from lcpr_core.lcpr.preprocess.cameras import DECODERS
+from lcpr_core.verification.submap import SUBMAP_MODES
 from ros_common.config import SHARED_DOCS
 from ros_common.params import ParamDoc
 
@@ -35,6 +37,26 @@ DOCS: dict[str, ParamDoc] = {
     "verify.num_threads": ParamDoc("registration threads", 1, 64, dynamic=True),
     "verify.cloud.voxel": ParamDoc("m, voxel size of the compact keyframe cloud kept in the map", 0.05, 5.0),
     "verify.cloud.max_points": ParamDoc("points kept per keyframe cloud (6 bytes each)", 100, 1_000_000),
+    # ---- local submaps (lcpr_core.verification.submap): neighbours stitched by the odometry before verifying
+    "submap.mode": ParamDoc("verify local submaps instead of single scans: the query with its previous keyframes, "
+                            "each match with its neighbours, stitched by the odometry; auto = on for a keyframe "
+                            "whose cloud covers less than submap.auto_fov_deg of azimuth (a narrow field of view "
+                            "such as a Livox Avia's), off for 360 deg scans", choices=SUBMAP_MODES, dynamic=True),
+    "submap.travel_m": ParamDoc("m of odometry path a neighbour may be from the centre keyframe, on each side",
+                                0.01, 1000.0, dynamic=True),
+    "submap.max_keyframes": ParamDoc("keyframes stitched into one submap at most, the centre included (nearest "
+                                     "by path first)", 1, 1000, dynamic=True),
+    "submap.max_gap_s": ParamDoc("s between consecutive keyframes beyond which they are not stitched (another "
+                                 "run)", 0.001, 1e6, dynamic=True),
+    "submap.voxel": ParamDoc("m, voxel grid of the stitched cloud", 0.05, 5.0, dynamic=True),
+    "submap.max_points": ParamDoc("points of a stitched cloud at most (registration time grows with them)",
+                                  100, 1_000_000, dynamic=True),
+    "submap.auto_fov_deg": ParamDoc("deg of azimuth under which submap.mode auto counts a keyframe's field of "
+                                    "view as narrow", 0.0, 360.0, dynamic=True),
+    "submap.lidar_xyz": ParamDoc("m: the LiDAR (the clouds' frame) in the odometry's child frame "
+                                 "(base_T_lidar), to place neighbours' clouds", dynamic=True),
+    "submap.lidar_rpy": ParamDoc("rad: roll, pitch, yaw of the LiDAR in the odometry's child frame (R = Rz Ry Rx)",
+                                 dynamic=True),
 
     # ---- model (read-only: the network is built once)
     "model.weights": ParamDoc("LCPR weights: bundled (the trained weights shipped, synthetic cities), a checkpoint "
@@ -86,6 +108,11 @@ DOCS: dict[str, ParamDoc] = {
     "match.exclude_recent_s": ParamDoc("this session's keyframes newer than this many seconds are not matched",
                                        0.0, 1e9, dynamic=True),
     "match.exclude_recent_count": ParamDoc("and neither are the last N keyframes; 0 = off", 0, BIG, dynamic=True),
+    "match.method": ParamDoc("what proposes the candidates: lcpr (the descriptor), scan_context (the top_k nearest "
+                             "Scan Contexts of the keyframes' clouds) or fused (both lists); the network runs for "
+                             "all (docs/lidar_only.md compares them on real LiDARs)", choices=MATCH_METHODS),
+    "match.sc_max_distance": ParamDoc("Scan Context distance (0..1) a scan_context / fused candidate must be under; "
+                                      "1 = every top-k one (verification decides)", 0.0, 1.0, dynamic=True),
     "sensors.require_lidar": ParamDoc("no cloud -> no keyframe; false: an empty range image is used"),
     # ---- descriptor map (read-only: fixed by the map)
     "map.dim": ParamDoc("descriptor size stored in the map", 1, 65536),

@@ -7,7 +7,7 @@ import math
 import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -15,6 +15,9 @@ from ..atomic import atomic_path
 from .latency import LatencyStats
 from .protocols import GroundTruth, OperatingPoint, ProtocolResult
 from .results import MethodResult, VerifiedLoops
+
+if TYPE_CHECKING:
+    from ..backend_replay import BackendEvaluation
 
 
 @dataclass
@@ -27,6 +30,7 @@ class EvaluationReport:
     wall_time_s: float = 0.0
     setup_time_s: float = 0.0  # of wall_time_s: building the detector (loading, auto's measurement, graph capture)
     verified: VerifiedLoops | None = None  # LCPR + verification; None when verification was off
+    backend: BackendEvaluation | None = None  # the bag's LiDAR odometry corrected by the back end; None = not run
 
     def to_dict(self) -> dict[str, Any]:
         return _jsonable({
@@ -34,6 +38,7 @@ class EvaluationReport:
             "ground_truth": self.ground_truth.summary(), "wall_time_s": self.wall_time_s,
             "methods": [m.to_dict() for m in self.methods],
             "verified": None if self.verified is None else self.verified.to_dict(),
+            "backend": None if self.backend is None else self.backend.to_dict(),
         })
 
     def write_json(self, path: str | os.PathLike[str]) -> None:

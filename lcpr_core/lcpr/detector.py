@@ -15,12 +15,24 @@ than ``match.exclude_recent_s`` seconds or among the last
 ``match.exclude_recent_count``. Entries of a map loaded from an earlier session
 are never excluded by time (their stamps belong to another clock run).
 
+``match.method`` picks what proposes those candidates: ``lcpr`` (the descriptor, default),
+``scan_context`` (the ``match.top_k`` nearest Scan Contexts of the keyframes' clouds,
+:class:`~lcpr_core.scan_context.ScanContextRows`, under ``match.sc_max_distance``) or ``fused``
+(both lists, the descriptor's first). The exclusion rules are the same for all; the network runs
+for every method so that the map stays searchable by any of them. Scan Contexts are kept in memory;
+those of a prior map's keyframes are rebuilt from their stored compact clouds.
+
 Verification (``verify.enabled``, on by default): every keyframe keeps a compact copy
 of its cloud in the map; each candidate is registered against the query's cloud
 (:class:`~lcpr_core.verification.GeometricVerifier`) and gets ``verified``,
 ``fitness``, ``match_T_query`` and ``covariance``. ``Result.loop`` is then the
 verified candidate with the best fitness (None when none passed), not the nearest
 descriptor. With verification off, ``Result.loop`` is the nearest candidate, as before.
+
+Submaps (``submap.*``, :mod:`lcpr_core.verification.submap`; "auto" by default: on for a keyframe
+whose cloud covers less than 180 deg of azimuth): the query's cloud is verified with its previous
+keyframes of this session stitched in by the odometry (``Frame.pose``), and each match's with its
+neighbours on both sides; the two never share a keyframe. The map keeps each keyframe's full pose.
 """
 from __future__ import annotations
 
@@ -40,13 +52,19 @@ from ..errors import InvalidValueError, MapSchemaError
 from ..exclusion import matchable_prefix
 from ..keyframes import KeyframeConfig, keyframe_reason
 from ..pretrained import AUTO_DISTANCE, effective_max_distance, operating_threshold, resolve_weights
-from ..verification import GeometricVerifier, PreparedCloud, Verification, VerifierConfig
+from ..scan_context import ScanContextConfig, ScanContextRows
+from ..verification import GeometricVerifier, PreparedCloud, Submap, SubmapConfig, Verification, VerifierConfig
+from ..verification.submap import build_submap
 from .describer import Describer, ModelConfig
 from .preprocess.camera import CameraInput
 
 log = logging.getLogger(__name__)
 
 PREPARED_CACHE = 64  # prepared map clouds kept for the next queries (consecutive queries share candidates)
+#: match.method: what proposes the candidates (docs/lidar_only.md compares them on real LiDARs)
+MATCH_METHODS = ("lcpr", "scan_context", "fused")
+SC_CANDIDATES_PER_K = 5  # Scan Context: ring-key nearest neighbours compared in full, per candidate wanted
+_RIGID_TOLERANCE = 1e-4  # a pose whose rotation block is farther from orthonormal is stored as a position only
 
 
 def _non_negative(obj: object, *names: str) -> None:
@@ -64,10 +82,16 @@ class MatchConfig:
     max_distance: float = AUTO_DISTANCE
     exclude_recent_s: float = 30.0  # this session's keyframes newer than this are not matched
     exclude_recent_count: int = 0  # and neither are the last N keyframes (0 = off)
+    method: str = "lcpr"  # what proposes the candidates: lcpr | scan_context | fused (MATCH_METHODS)
+    sc_max_distance: float = 1.0  # Scan Context distance (0..1) a scan_context / fused candidate must be under
 
     def __post_init__(self) -> None:
         if self.top_k < 1:
             raise InvalidValueError(f"match.top_k={self.top_k}; it must be at least 1")
+        if self.method not in MATCH_METHODS:
+            raise InvalidValueError(f"match.method={self.method!r}; accepted: {', '.join(MATCH_METHODS)}")
+        if not 0.0 <= self.sc_max_distance <= 1.0:
+            raise InvalidValueError(f"match.sc_max_distance={self.sc_max_distance!r}; accepted: 0 <= distance <= 1")
         if self.max_distance != AUTO_DISTANCE and not self.max_distance >= 0:
             raise InvalidValueError(f"match.max_distance={self.max_distance!r}; accepted: a distance >= 0, or "
                                     f"{AUTO_DISTANCE} for the weights file's operating threshold")
@@ -87,6 +111,7 @@ class DetectorConfig:
     sensors: SensorConfig = field(default_factory=SensorConfig)
     map: MapConfig = field(default_factory=MapConfig)
     verify: VerifierConfig = field(default_factory=VerifierConfig)
+    submap: SubmapConfig = field(default_factory=SubmapConfig)  # local submaps verified instead of single scans
     session: str = "session"  # source name stored with this run's keyframes
 
 
@@ -106,7 +131,7 @@ class Candidate:
     match_id: int
     query_stamp: float
     match_stamp: float
-    distance: float  # descriptor L2
+    distance: float  # descriptor L2 (a Scan Context candidate: its Scan Context distance, 0..1)
     rank: int  # 0 = best
     match_position: tuple[float, float, float] | None
     degraded: bool  # the query had a missing camera
@@ -165,8 +190,10 @@ class LoopDetector:
         self._kf_stamp: float | None = None  # the newest keyframe decided on (described or about to be)
         self._last_position: np.ndarray | None = None
         self.verifier = GeometricVerifier(config.verify)
-        self._prepared: OrderedDict[int, PreparedCloud] = OrderedDict()
+        self._prepared: OrderedDict[tuple[int, ...], PreparedCloud] = OrderedDict()  # (centre id, ids stitched)
+        self._submap_config = config.submap  # what the prepared clouds were stitched with
         self.weights_threshold = operating_threshold(resolve_weights(config.model.weights))  # the file's, or None
+        self.scan_contexts = self._prior_scan_contexts() if config.match.method != "lcpr" else None  # row-aligned
 
     def _checked(self, prior: DescriptorMap) -> DescriptorMap:
         """A prior map whose descriptors this describer can search: made by the same weights (whitening, turn
@@ -264,15 +291,20 @@ class LoopDetector:
     def _store(self, frame: Frame, result: Result, desc: np.ndarray) -> None:
         """Match a described keyframe against the map before it, add it, verify its candidates."""
         points = frame.points if frame.points is not None else np.zeros((0, 3), np.float32)
+        context = None
+        if self.scan_contexts is not None:
+            tic = time.perf_counter()
+            context = self.scan_contexts.describe(points)
+            result.timings["scan_context"] = time.perf_counter() - tic
         tic = time.perf_counter()
-        hits = self._search(desc, frame.stamp)
+        hits = self._search(desc, frame.stamp, context=context)
         result.timings["search"] = time.perf_counter() - tic
 
         tic = time.perf_counter()
-        position = None if frame.pose is None else np.asarray(frame.pose, np.float64)[:3, 3]
-        (new_id,) = self.map.add(desc, stamps=frame.stamp, poses=None if position is None else position[None],
-                                 sources=self.config.session)
+        (new_id,) = self.map.add(desc, stamps=frame.stamp, poses=_map_pose(frame.pose), sources=self.config.session)
         result.keyframe_id = int(new_id)
+        if self.scan_contexts is not None:
+            self.scan_contexts.add(context)
         degraded = bool(result.missing_cameras)
         result.candidates = [
             Candidate(int(new_id), h.id, frame.stamp, h.stamp, h.distance, rank, h.pose, degraded)
@@ -301,10 +333,20 @@ class LoopDetector:
         """
         if not candidates:
             return candidates
-        query = self.verifier.prepare(compact)
+        if self.config.submap != self._submap_config:  # settings changed at run time
+            self._submap_config = self.config.submap
+            self._prepared.clear()
+        query_sub = self._submap(candidates[0].query_id, before_only=True)
+        first = None if query_sub is None else query_sub.rows[0]  # the query's own keyframes start here
+        queries = {False: self.verifier.prepare(compact if query_sub is None else query_sub.xyz)}
         out = []
         for c in candidates:
-            match = self._prepared_cloud(c.match_id)
+            row = self.map.row_of(c.match_id)
+            inside = first is not None and row is not None and row >= first  # a keyframe the query stitched
+            if inside and True not in queries:  # that pair is verified scan against scan
+                queries[True] = self.verifier.prepare(compact)
+            query = queries[inside]
+            match = self._prepared_cloud(c.match_id, end=first)
             if match is None:
                 out.append(dataclasses.replace(c, verification="no cloud"))
                 continue
@@ -318,20 +360,47 @@ class LoopDetector:
                                            verification=v.reason))
         return out
 
-    def _prepared_cloud(self, keyframe_id: int) -> PreparedCloud | None:
-        """The match keyframe's prepared cloud, from a small LRU cache."""
-        cached = self._prepared.get(keyframe_id)
-        if cached is not None:
-            self._prepared.move_to_end(keyframe_id)
-            return cached
-        xyz = self.map.clouds.get(keyframe_id)
-        if xyz is None:
+    def _prepared_cloud(self, keyframe_id: int, *, end: int | None) -> PreparedCloud | None:
+        """The match keyframe's prepared cloud (its submap when submaps apply; no row from ``end`` on, where the
+        query's own keyframes start: its cloud alone when it is one of them), from a small LRU cache keyed by
+        the keyframe (whose LiDAR frame the cloud is in) and the keyframes stitched."""
+        sub = self._submap(keyframe_id, before_only=False, end=end)
+        if sub is None:
             return None
-        prepared = self.verifier.prepare(xyz)
-        self._prepared[keyframe_id] = prepared
+        key = (int(keyframe_id), *(int(i) for i in self.map.ids[list(sub.rows)]))
+        cached = self._prepared.get(key)
+        if cached is not None:
+            self._prepared.move_to_end(key)
+            return cached
+        prepared = self.verifier.prepare(sub.xyz)
+        self._prepared[key] = prepared
         if len(self._prepared) > PREPARED_CACHE:
             self._prepared.popitem(last=False)
         return prepared
+
+    def _submap(self, keyframe_id: int, *, before_only: bool, end: int | None = None) -> Submap | None:
+        """A keyframe's cloud with its neighbours of one session stitched in (rows: map rows), its cloud alone when
+        submaps are off or do not apply; None without a cloud. ``end``: no row from it on."""
+        cfg = self.config.submap
+        row = self.map.row_of(keyframe_id)
+        xyz = self.map.clouds.get(keyframe_id)
+        if row is None or xyz is None:
+            return None
+        if cfg.mode == "off" or (end is not None and end <= row):
+            return Submap(xyz, (row,))
+        # one session: this run's rows or the earlier ones, one source, within reach of max_keyframes
+        lo, hi = (self._session_start, len(self.map)) if row >= self._session_start else (0, self._session_start)
+        reach = cfg.max_keyframes - 1
+        lo, hi = max(lo, row - reach), min(hi, row + 1 if before_only else row + reach + 1)
+        if end is not None:
+            hi = min(hi, end)
+        codes, at = self.map.source_codes[lo:hi], row - lo
+        other = np.flatnonzero(codes != codes[at])  # rows of another source end the run
+        lo, hi = lo + int(other[other < at].max(initial=-1)) + 1, lo + int(other[other > at].min(initial=hi - lo))
+        ids = self.map.ids[lo:hi]
+        sub = build_submap(row - lo, world_T_base=self.map.pose_matrices(slice(lo, hi)), stamps=self.map.stamps[lo:hi],
+                           cloud=lambda r: self.map.clouds.get(int(ids[r])), config=cfg, before_only=before_only)
+        return None if sub is None else Submap(sub.xyz, tuple(lo + r for r in sub.rows))
 
     def _keyframe_reason(self, frame: Frame) -> str:
         if frame.stamp <= self._last_stamp:
@@ -344,8 +413,9 @@ class LoopDetector:
                                last_position=self._last_position, min_interval=self.config.keyframe.min_interval,
                                min_distance=self.config.keyframe.min_distance)
 
-    def _search(self, desc: np.ndarray, stamp: float) -> list[Match]:
-        """Top-k map entries within max_distance, this session's recent keyframes left out.
+    def _search(self, desc: np.ndarray, stamp: float, *, context: np.ndarray | None = None) -> list[Match]:
+        """Top-k map entries by ``match.method`` (fused: the descriptor's, then Scan Context's not among them),
+        this session's recent keyframes left out.
 
         Excluded keyframes are the newest rows of the map, so the search asks for that
         many more hits and drops them: exact however many are excluded.
@@ -355,14 +425,65 @@ class LoopDetector:
         eligible = len(self.map) - excluded
         if eligible <= 0:
             return []
+        hits = self._search_descriptor(desc, excluded, eligible) if cfg.method != "scan_context" else []
+        if cfg.method != "lcpr" and context is not None:
+            seen = {h.id for h in hits}
+            hits += [h for h in self._search_scan_context(context, eligible) if h.id not in seen]
+        return hits
+
+    def _search_descriptor(self, desc: np.ndarray, excluded: int, eligible: int) -> list[Match]:
+        """Top-k map entries within max_distance among the first ``eligible`` rows."""
+        cfg = self.config.match
         # one (D,) descriptor: search returns one list of matches
         hits = cast(list[Match], self.map.search(desc, k=min(cfg.top_k + excluded, len(self.map)),
                                                  max_distance=self.max_distance))
         newest_ids = set(self.map.ids[eligible:].tolist())
         return [h for h in hits if h.id not in newest_ids][: cfg.top_k]
 
+    def _search_scan_context(self, context: np.ndarray, eligible: int) -> list[Match]:
+        """Top-k Scan Contexts within match.sc_max_distance among the first ``eligible`` rows (distance: theirs)."""
+        assert self.scan_contexts is not None  # made whenever match.method is not "lcpr"
+        cfg = self.config.match
+        found = self.scan_contexts.search(context, rows=eligible, k=cfg.top_k, max_distance=cfg.sc_max_distance)
+        if not found:
+            return []
+        sources = self.map.sources
+        out = []
+        for rank, (row, distance) in enumerate(found):
+            p = self.map.poses[row]
+            pose = None if np.isnan(p).all() else (float(p[0]), float(p[1]), float(p[2]))
+            out.append(Match(id=int(self.map.ids[row]), distance=distance, stamp=float(self.map.stamps[row]),
+                             pose=pose, source=sources[row], rank=rank))
+        return out
+
+    def _prior_scan_contexts(self) -> ScanContextRows:
+        """Scan Context rows for the map's existing keyframes, rebuilt from their stored compact clouds (a
+        keyframe without one is never proposed by Scan Context)."""
+        rows = ScanContextRows(ScanContextConfig(candidates=SC_CANDIDATES_PER_K * self.config.match.top_k))
+        missing = 0
+        for kf in self.map.ids.tolist():
+            xyz = self.map.clouds.get(int(kf))
+            missing += xyz is None
+            rows.add(None if xyz is None else rows.describe(xyz))
+        if len(self.map):
+            log.info("match.method %s: Scan Contexts of the prior map's %d keyframes rebuilt from their clouds "
+                     "(%d have none and are never proposed by it)", self.config.match.method, len(self.map), missing)
+        return rows
+
     def _excluded_count(self, stamp: float) -> int:
         """How many of this session's newest keyframes the exclusion rules hide from ``stamp``."""
         cfg = self.config.match
         by_time = len(self._session_stamps) - matchable_prefix(self._session_stamps, stamp, cfg.exclude_recent_s)
         return min(len(self._session_stamps), max(by_time, int(cfg.exclude_recent_count)))
+
+
+def _map_pose(pose: np.ndarray | None) -> np.ndarray | None:
+    """What the map keeps of a frame's world_T_base: the full pose (1, 4, 4) when it is rigid, else the position
+    (1, 3) (odometry with a damaged rotation still keyframes and matches, but gets no submap); None: none."""
+    if pose is None:
+        return None
+    T = np.asarray(pose, np.float64)
+    R = T[:3, :3]
+    if np.isfinite(T).all() and np.abs(R.T @ R - np.eye(3)).max() <= _RIGID_TOLERANCE and np.linalg.det(R) > 0:
+        return T[None]
+    return T[None, :3, 3]
