@@ -54,6 +54,16 @@ def so3_exp(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + math.sin(theta) / theta * k + (1.0 - math.cos(theta)) / theta**2 * (k @ k)
 
 
+def pose_from_xyz_rpy(xyz: tuple[float, ...], rpy: tuple[float, ...]) -> np.ndarray:
+    """4 x 4 from a translation and roll, pitch, yaw in radians (R = Rz Ry Rx, as URDF and tf2)."""
+    roll, pitch, yaw = rpy
+    out = np.eye(4)
+    out[:3, :3] = so3_exp(np.array([0.0, 0.0, yaw])) @ so3_exp(np.array([0.0, pitch, 0.0])) \
+        @ so3_exp(np.array([roll, 0.0, 0.0]))
+    out[:3, 3] = xyz
+    return out
+
+
 def nearest_rotation(r: np.ndarray) -> np.ndarray:
     """The rotation matrix nearest ``r`` (3, 3) (SVD projection): removes round-off before a solver sees it."""
     u, _, vt = np.linalg.svd(r)

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from lcpr_core.backend import BackendConfig, KeyframeRule, LoopPolicy, OdometryNoise
-from lcpr_core.geometry import so3_exp
+from lcpr_core.geometry import pose_from_xyz_rpy
 from ros_common.config import INPUT_QOS, SHARED_DOCS, DiagnosticsConfig, MapFileConfig, require
 from ros_common.params import Leaf, ParamDoc, build, describe, leaves, read_params_file, to_yaml, unique
 
@@ -39,12 +39,7 @@ class LidarMount:
                 f"rpy={list(self.rpy)}; give 3 finite radians (roll, pitch, yaw)")
 
     def matrix(self) -> np.ndarray:
-        roll, pitch, yaw = self.rpy
-        out = np.eye(4)
-        out[:3, :3] = so3_exp(np.array([0.0, 0.0, yaw])) @ so3_exp(np.array([0.0, pitch, 0.0])) \
-            @ so3_exp(np.array([roll, 0.0, 0.0]))
-        out[:3, 3] = self.xyz
-        return out
+        return pose_from_xyz_rpy(self.xyz, self.rpy)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import VerificationError
-from ..geometry import invert, so3_exp
+from ..geometry import invert, pose_from_xyz_rpy
 from .clouds import compact_cloud
 from .config import CloudConfig
 
@@ -72,12 +72,7 @@ class SubmapConfig:
 
     def base_T_lidar(self) -> np.ndarray:
         """4 x 4: the LiDAR (the clouds' frame) in the odometry's base frame."""
-        roll, pitch, yaw = self.lidar_rpy
-        out = np.eye(4)
-        out[:3, :3] = so3_exp(np.array([0.0, 0.0, yaw])) @ so3_exp(np.array([0.0, pitch, 0.0])) \
-            @ so3_exp(np.array([roll, 0.0, 0.0]))
-        out[:3, 3] = self.lidar_xyz
-        return out
+        return pose_from_xyz_rpy(self.lidar_xyz, self.lidar_rpy)
 
     def applies(self, xyz: np.ndarray) -> bool:
         """Whether a keyframe with this cloud (M x 3, its LiDAR frame) gets a submap."""
