@@ -48,7 +48,7 @@ if TYPE_CHECKING:
     from .lcpr.detector import Result
 
 __all__ = ["FALSE_LOOP_COV", "FALSE_MIN_M", "MIN_GAP_S", "BackendEvaluation", "LoopStream", "ReplayRun",
-           "StreamRecorder", "TrajectoryError", "evaluate_backend", "false_loops", "loop_pairs", "replay",
+           "StreamRecorder", "TrajectoryAccuracy", "evaluate_backend", "false_loops", "loop_pairs", "replay",
            "trajectory_error"]
 
 FALSE_LOOP_COV = np.diag([0.05**2] * 3 + [math.radians(0.5) ** 2] * 3)  # "confident": as a good ICP claims
@@ -330,7 +330,7 @@ def _rotation_vector(r: np.ndarray) -> np.ndarray:
 
 # ============================================================================ errors
 @dataclass(frozen=True)
-class TrajectoryError:
+class TrajectoryAccuracy:
     """ATE RMSE (m) of a trajectory against the truth (module docstring)."""
 
     rmse: float  # 3-D, no alignment
@@ -347,7 +347,7 @@ class TrajectoryError:
         return dataclasses.asdict(self)
 
 
-def trajectory_error(estimate: np.ndarray, truth: np.ndarray) -> TrajectoryError:
+def trajectory_error(estimate: np.ndarray, truth: np.ndarray) -> TrajectoryAccuracy:
     """ATE of (N, 4, 4) ``estimate`` against (N, 4, 4) ``truth``, over the frames whose truth is known."""
     est, ref = np.asarray(estimate, np.float64), np.asarray(truth, np.float64)
     if est.shape != ref.shape or est.ndim != 3 or est.shape[1:] != (4, 4):
@@ -357,7 +357,7 @@ def trajectory_error(estimate: np.ndarray, truth: np.ndarray) -> TrajectoryError
         raise InvalidValueError("the truth holds no finite pose; an ATE needs at least one")
     e, r = est[known, :3, 3], ref[known, :3, 3]
     err = e - r
-    return TrajectoryError(rmse=ate_rmse(e, r), horizontal=float(np.sqrt((err[:, :2] ** 2).sum(axis=1).mean())),
+    return TrajectoryAccuracy(rmse=ate_rmse(e, r), horizontal=float(np.sqrt((err[:, :2] ** 2).sum(axis=1).mean())),
                            vertical=float(np.sqrt((err[:, 2] ** 2).mean())), aligned=ate_rmse(e, r, align=True),
                            frames=int(known.sum()))
 
@@ -376,8 +376,8 @@ class BackendEvaluation:
     odometry_name: str  # what made the odometry, for the report and the plot
     stream: LoopStream
     run: ReplayRun
-    before: TrajectoryError
-    after: TrajectoryError
+    before: TrajectoryAccuracy
+    after: TrajectoryAccuracy
     config: BackendConfig
 
     def to_dict(self) -> dict[str, Any]:
