@@ -21,7 +21,6 @@ Stamps are ``--start-time`` plus times.txt, in exact nanoseconds.
 from __future__ import annotations
 
 import argparse
-import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,11 +32,11 @@ from lcpr_common.progress import progress_iter
 from ..bags import BagWriter
 from ..bags.writer import label_image
 from ..compressed import decode_image_bytes
-from ..errors import DatasetError, MsgToolsError
+from ..errors import DatasetError
 from ..frames import KITTI_TOPICS, CameraModel, Topics
 from ..geometry import invert_pose
 from ..types import Stamp, sec_to_stamp
-from .cli import add_output_options, print_summary
+from .cli import add_output_options, run_conversion
 from .kitti_files import KittiSequence, read_labels, read_scan
 
 CAMERA_FRAME = "camera_left"
@@ -174,16 +173,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        report = convert_kitti(
-            args.sequence, args.out, poses=args.poses, start_time=args.start_time, depth=args.depth,
-            limit=args.limit, storage=args.storage, overwrite=args.overwrite, show_progress=not args.no_progress,
-        )
-    except MsgToolsError as err:
-        print(f"msg_tools_kitti2bag: error: {err}", file=sys.stderr)
-        return 2
-    print_summary(args.out, report.lines())
-    return 0
+    return run_conversion("msg_tools_kitti2bag", args.out, lambda: convert_kitti(
+        args.sequence, args.out, poses=args.poses, start_time=args.start_time, depth=args.depth,
+        limit=args.limit, storage=args.storage, overwrite=args.overwrite, show_progress=not args.no_progress,
+    ))
 
 
 if __name__ == "__main__":

@@ -17,7 +17,6 @@ ordered by time (nuScenes poses of one location share a map frame).
 from __future__ import annotations
 
 import argparse
-import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,11 +28,11 @@ from lcpr_common.progress import progress_iter
 
 from ..bags import BagWriter
 from ..compressed import compressed_jpeg_bytes
-from ..errors import DatasetError, MsgToolsError
+from ..errors import DatasetError
 from ..frames import NUSCENES_CAMERAS, NUSCENES_TOPICS, CameraModel, Topics
 from ..geometry import pose_from_parts
 from ..types import Stamp
-from .cli import add_output_options, print_summary
+from .cli import add_output_options, run_conversion
 from .nuscenes_tables import NuScenesTables, Record
 from .point_files import NUSCENES_COLUMNS, read_points
 
@@ -192,16 +191,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        report = convert_nuscenes(
-            args.dataroot, args.out, version=args.version, scenes=args.scene, locations=args.location,
-            storage=args.storage, overwrite=args.overwrite, show_progress=not args.no_progress,
-        )
-    except MsgToolsError as err:
-        print(f"msg_tools_nuscenes2bag: error: {err}", file=sys.stderr)
-        return 2
-    print_summary(args.out, report.lines())
-    return 0
+    return run_conversion("msg_tools_nuscenes2bag", args.out, lambda: convert_nuscenes(
+        args.dataroot, args.out, version=args.version, scenes=args.scene, locations=args.location,
+        storage=args.storage, overwrite=args.overwrite, show_progress=not args.no_progress,
+    ))
 
 
 if __name__ == "__main__":

@@ -31,7 +31,7 @@ from lcpr_common.progress import progress_iter
 from ..bags import BagWriter
 from ..errors import DatasetError, MsgToolsError
 from ..pcd import read_pcd
-from .cli import add_output_options, print_summary
+from .cli import add_output_options, run_conversion
 from .kitti import kitti_cloud
 from .kitti_files import read_calibration, read_scan
 from .scan_folder import read_kitti_poses
@@ -176,14 +176,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        report = convert_scans(args.folder, args.out, poses=args.poses, skip_bad=args.skip_bad,
-                               storage=args.storage, overwrite=args.overwrite, show_progress=not args.no_progress)
-    except MsgToolsError as err:
-        print(f"msg_tools_scans2bag: {err}", file=sys.stderr)
-        return 2
-    print_summary(args.out, report.lines())
-    return 0
+    return run_conversion("msg_tools_scans2bag", args.out, lambda: convert_scans(
+        args.folder, args.out, poses=args.poses, skip_bad=args.skip_bad, storage=args.storage,
+        overwrite=args.overwrite, show_progress=not args.no_progress,
+    ))
 
 
 if __name__ == "__main__":
