@@ -40,9 +40,9 @@ import dataclasses
 import logging
 import time
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import cast
+from typing import TypedDict, cast
 
 import numpy as np
 import torch
@@ -54,7 +54,7 @@ from ..keyframes import KeyframeConfig, keyframe_reason
 from ..pretrained import AUTO_DISTANCE, effective_max_distance, operating_threshold, resolve_weights
 from ..scan_context import ScanContextConfig, ScanContextRows
 from ..verification import GeometricVerifier, PreparedCloud, Submap, SubmapConfig, Verification, VerifierConfig
-from ..verification.submap import build_submap
+from ..verification.submap import build_submap, submap_rows
 from .describer import Describer, ModelConfig
 from .preprocess.camera import CameraInput
 
@@ -65,6 +65,15 @@ PREPARED_CACHE = 64  # prepared map clouds kept for the next queries (consecutiv
 MATCH_METHODS = ("lcpr", "scan_context", "fused")
 SC_CANDIDATES_PER_K = 5  # Scan Context: ring-key nearest neighbours compared in full, per candidate wanted
 _RIGID_TOLERANCE = 1e-4  # a pose whose rotation block is farther from orthonormal is stored as a position only
+
+
+class _SubmapArgs(TypedDict):
+    """What :func:`build_submap` reads of a window of map rows (``centre``: the keyframe's row in it)."""
+
+    centre: int
+    world_T_base: np.ndarray
+    stamps: np.ndarray
+    cloud: Callable[[int], np.ndarray | None]
 
 
 def _non_negative(obj: object, *names: str) -> None:
@@ -363,44 +372,66 @@ class LoopDetector:
     def _prepared_cloud(self, keyframe_id: int, *, end: int | None) -> PreparedCloud | None:
         """The match keyframe's prepared cloud (its submap when submaps apply; no row from ``end`` on, where the
         query's own keyframes start: its cloud alone when it is one of them), from a small LRU cache keyed by
-        the keyframe (whose LiDAR frame the cloud is in) and the keyframes stitched."""
-        sub = self._submap(keyframe_id, before_only=False, end=end)
-        if sub is None:
+        the keyframe (whose LiDAR frame the cloud is in) and the keyframes stitched: a hit stitches nothing."""
+        window = self._submap_window(keyframe_id, before_only=False, end=end)
+        if window is None:
             return None
-        key = (int(keyframe_id), *(int(i) for i in self.map.ids[list(sub.rows)]))
+        lo, rows = window[0], window[1]
+        key = (int(keyframe_id), *(int(i) for i in self.map.ids[[lo + r for r in rows]]))
         cached = self._prepared.get(key)
         if cached is not None:
             self._prepared.move_to_end(key)
             return cached
+        sub = self._submap(keyframe_id, before_only=False, end=end, window=window)
+        if sub is None:
+            return None
         prepared = self.verifier.prepare(sub.xyz)
         self._prepared[key] = prepared
         if len(self._prepared) > PREPARED_CACHE:
             self._prepared.popitem(last=False)
         return prepared
 
-    def _submap(self, keyframe_id: int, *, before_only: bool, end: int | None = None) -> Submap | None:
+    def _submap(self, keyframe_id: int, *, before_only: bool, end: int | None = None,
+                window: tuple[int, tuple[int, ...], _SubmapArgs] | None = None) -> Submap | None:
         """A keyframe's cloud with its neighbours of one session stitched in (rows: map rows), its cloud alone when
-        submaps are off or do not apply; None without a cloud. ``end``: no row from it on."""
+        submaps are off or do not apply; None without a cloud. ``end``: no row from it on. ``window``:
+        :meth:`_submap_window`'s answer when the caller has it."""
+        window = window if window is not None else self._submap_window(keyframe_id, before_only=before_only, end=end)
+        if window is None:
+            return None
+        lo, rows, args = window
+        sub = build_submap(args["centre"], world_T_base=args["world_T_base"], stamps=args["stamps"],
+                           cloud=args["cloud"], config=self.config.submap, before_only=before_only, rows=rows)
+        return None if sub is None else Submap(sub.xyz, tuple(lo + r for r in sub.rows))
+
+    def _submap_window(self, keyframe_id: int, *, before_only: bool, end: int | None
+                       ) -> tuple[int, tuple[int, ...], _SubmapArgs] | None:
+        """(first map row of the window, the submap's rows within it, what build_submap reads) of a keyframe's
+        submap, without stitching; None without a cloud."""
         cfg = self.config.submap
         row = self.map.row_of(keyframe_id)
-        xyz = self.map.clouds.get(keyframe_id)
-        if row is None or xyz is None:
+        if row is None or self.map.clouds.get(keyframe_id) is None:
             return None
         if cfg.mode == "off" or (end is not None and end <= row):
-            return Submap(xyz, (row,))
-        # one session: this run's rows or the earlier ones, one source, within reach of max_keyframes
-        lo, hi = (self._session_start, len(self.map)) if row >= self._session_start else (0, self._session_start)
-        reach = cfg.max_keyframes - 1
-        lo, hi = max(lo, row - reach), min(hi, row + 1 if before_only else row + reach + 1)
-        if end is not None:
-            hi = min(hi, end)
-        codes, at = self.map.source_codes[lo:hi], row - lo
-        other = np.flatnonzero(codes != codes[at])  # rows of another source end the run
-        lo, hi = lo + int(other[other < at].max(initial=-1)) + 1, lo + int(other[other > at].min(initial=hi - lo))
+            lo, hi = row, row + 1
+        else:
+            # one session: this run's rows or the earlier ones, one source, within reach of max_keyframes
+            lo, hi = (self._session_start, len(self.map)) if row >= self._session_start else (0, self._session_start)
+            reach = cfg.max_keyframes - 1
+            lo, hi = max(lo, row - reach), min(hi, row + 1 if before_only else row + reach + 1)
+            if end is not None:
+                hi = min(hi, end)
+            codes, at = self.map.source_codes[lo:hi], row - lo
+            other = np.flatnonzero(codes != codes[at])  # rows of another source end the run
+            lo, hi = lo + int(other[other < at].max(initial=-1)) + 1, lo + int(other[other > at].min(initial=hi - lo))
         ids = self.map.ids[lo:hi]
-        sub = build_submap(row - lo, world_T_base=self.map.pose_matrices(slice(lo, hi)), stamps=self.map.stamps[lo:hi],
-                           cloud=lambda r: self.map.clouds.get(int(ids[r])), config=cfg, before_only=before_only)
-        return None if sub is None else Submap(sub.xyz, tuple(lo + r for r in sub.rows))
+        args: _SubmapArgs = {"centre": row - lo, "world_T_base": self.map.pose_matrices(slice(lo, hi)),
+                             "stamps": self.map.stamps[lo:hi], "cloud": lambda r: self.map.clouds.get(int(ids[r]))}
+        if cfg.mode == "off" or (end is not None and end <= row):
+            return lo, (0,), args
+        rows = submap_rows(args["centre"], world_T_base=args["world_T_base"], stamps=args["stamps"],
+                           cloud=args["cloud"], config=cfg, before_only=before_only)
+        return None if rows is None else (lo, rows, args)
 
     def _keyframe_reason(self, frame: Frame) -> str:
         if frame.stamp <= self._last_stamp:

@@ -29,7 +29,7 @@ from .clouds import compact_cloud
 from .config import CloudConfig
 
 __all__ = ["SUBMAP_MODES", "Submap", "SubmapConfig", "azimuth_coverage_deg", "build_submap", "neighbour_rows",
-           "stitch"]
+           "stitch", "submap_rows"]
 
 SUBMAP_MODES: tuple[str, ...] = ("off", "on", "auto")
 _AZIMUTH_BINS = 72  # 5 deg each
@@ -153,23 +153,38 @@ def stitch(clouds: list[np.ndarray], world_T_base: np.ndarray, centre: int, *, c
     return compact_cloud(merged, cloud)
 
 
+def submap_rows(centre: int, *, world_T_base: np.ndarray, stamps: np.ndarray,
+                cloud: Callable[[int], np.ndarray | None], config: SubmapConfig, before_only: bool
+                ) -> tuple[int, ...] | None:
+    """The rows :func:`build_submap` stitches (ascending, the centre included), without stitching them: what a
+    cache of prepared submaps is keyed by. None when the centre has no cloud."""
+    own = cloud(centre)
+    if own is None:
+        return None
+    if not config.applies(own):
+        return (centre,)
+    rows = neighbour_rows(world_T_base, stamps, centre, config=config, before_only=before_only)
+    return tuple(r for r in rows if r == centre or cloud(r) is not None)
+
+
 def build_submap(centre: int, *, world_T_base: np.ndarray, stamps: np.ndarray,
-                 cloud: Callable[[int], np.ndarray | None], config: SubmapConfig, before_only: bool) -> Submap | None:
+                 cloud: Callable[[int], np.ndarray | None], config: SubmapConfig, before_only: bool,
+                 rows: tuple[int, ...] | None = None) -> Submap | None:
     """The submap of keyframe ``centre``: what the detector verifies with, and what the benchmarks measure.
 
     ``world_T_base``, ``stamps``: one session's keyframes in order (see :func:`neighbour_rows`); ``cloud(row)``:
     a row's compact cloud, or None (the row is left out). None when the centre has no cloud; the centre's
     cloud alone when ``config`` does not apply to it (mode, field of view) or it has no usable neighbour.
+    ``rows``: :func:`submap_rows`' answer when the caller has it already.
     """
+    kept = rows if rows is not None else submap_rows(centre, world_T_base=world_T_base, stamps=stamps, cloud=cloud,
+                                                     config=config, before_only=before_only)
     own = cloud(centre)
-    if own is None:
+    if kept is None or own is None:
         return None
-    if not config.applies(own):
-        return Submap(own, (centre,))
-    rows = neighbour_rows(world_T_base, stamps, centre, config=config, before_only=before_only)
-    parts = [(r, c) for r in rows if (c := own if r == centre else cloud(r)) is not None]
-    kept = tuple(r for r, _ in parts)
     if kept == (centre,):
         return Submap(own, kept)
-    xyz = stitch([c for _, c in parts], np.asarray(world_T_base)[list(kept)], kept.index(centre), config=config)
+    parts = [own if r == centre else cloud(r) for r in kept]
+    xyz = stitch([c for c in parts if c is not None], np.asarray(world_T_base)[list(kept)], kept.index(centre),
+                 config=config)
     return Submap(xyz, kept)
