@@ -81,14 +81,14 @@ import numpy as np
 
 from .atomic import atomic_path
 from .errors import BackendError, PoseGraphError
-from .geometry import invert, nearest_rotation, rotation_angle_deg, skew
+from .geometry import interpolate_poses, invert, nearest_rotation, rotation_angle_deg, skew
 from .growable import GrowableArray
 from .loop_report import DEFAULT_LOOP_COVARIANCE, covariance_lidar_to_body
 from .posegraph import (
     ROBUST_KERNELS,
     DriftModel,
-    _check_covariances,
-    _check_poses,
+    check_covariances,
+    check_poses,
     lidar_to_body,
     to_gtsam_covariance,
 )
@@ -242,10 +242,11 @@ class BackendConfig:
     prior_sigma: float = 1e-3  # std dev (m and rad) of the prior holding the first node at its odometry
     relinearize_threshold: float = 0.1  # iSAM2 (its default): relinearise a node whose update exceeds this (rad, m)
     level_sigma_deg: float = 0.0  # > 0: every node's up axis is pulled to the world's up with this std dev; 0 = off
+    gravity_sigma_deg: float = 0.0  # > 0: every node's tilt is held to the odometry's with this std dev; 0 = off
 
     def __post_init__(self) -> None:
         try:
-            ext = _check_poses(self.base_T_lidar, "BackendConfig.base_T_lidar", single=True)
+            ext = check_poses(self.base_T_lidar, "BackendConfig.base_T_lidar", single=True)
         except PoseGraphError as err:
             raise BackendError(f"{err} (got {_show(self.base_T_lidar)})", reason="bad option") from err
         ext.flags.writeable = False
@@ -258,6 +259,7 @@ class BackendConfig:
             _require(_is_real(value) and math.isfinite(value) and value > 0,
                      f"BackendConfig.{name}={value!r}; expected a finite number > 0")
         _finite_non_negative(self, "level_sigma_deg")
+        _finite_non_negative(self, "gravity_sigma_deg")
 
 
 @dataclass(frozen=True)
@@ -350,7 +352,7 @@ class PoseGraphBackend:
             cov = self.config.loops.default_covariance()
         else:
             try:
-                cov = _check_covariances(covariance, f"covariance of the loop {q!r} -> {m!r}", single=True)
+                cov = check_covariances(covariance, f"covariance of the loop {q!r} -> {m!r}", single=True)
             except PoseGraphError as err:
                 self._refuse(LOOP_COVARIANCE, f"{err} (got {_show(covariance)})")
         child, odom_q = self._attach(q, "query_stamp")
@@ -478,7 +480,7 @@ class PoseGraphBackend:
         graph, values = gt.NonlinearFactorGraph(), gt.Values()
         graph.add(gt.PriorFactorPose3(0, _pose3(gt, pose), gt.noiseModel.Isotropic.Sigma(6, self.config.prior_sigma)))
         values.insert(0, _pose3(gt, pose))
-        self._add_level(graph, 0)
+        self._add_level(graph, 0, pose)
         self._isam.update(graph, values)
         self._node_index.append(row)
         self._node_stamps.append(float(self._stamps.view()[row]))
@@ -497,7 +499,7 @@ class PoseGraphBackend:
         graph.add(gt.BetweenFactorPose3(k - 1, k, _pose3(gt, step),
                                         gt.noiseModel.Gaussian.Covariance(gtsam_cov)))
         values.insert(k, _pose3(gt, self._newest @ step if initial is None else initial))
-        self._add_level(graph, k)
+        self._add_level(graph, k, odom[row])
         self._isam.update(graph, values)
         self._node_index.append(row)
         self._node_stamps.append(float(self._stamps.view()[row]))
@@ -522,14 +524,16 @@ class PoseGraphBackend:
             self._isam.update()
             before, limits = now, (_CONVERGED_M, _CONVERGED_RAD)
 
-    def _add_level(self, graph: Any, node: int) -> None:
-        """With ``level_sigma_deg`` > 0: an attitude factor pulling ``node``'s up axis to the world's up."""
-        if self.config.level_sigma_deg <= 0:
-            return
+    def _add_level(self, graph: Any, node: int, odometry: np.ndarray) -> None:
+        """Attitude factors on ``node`` (odometry pose ``odometry``): its up axis to the world's up
+        (``level_sigma_deg`` > 0) and its tilt to the odometry's (``gravity_sigma_deg`` > 0)."""
         gt = self._gtsam
-        up = gt.Unit3(np.array([0.0, 0.0, 1.0]))
-        noise = gt.noiseModel.Isotropic.Sigma(2, math.radians(self.config.level_sigma_deg))
-        graph.add(gt.AttitudeFactorPose3(node, up, noise, up))
+        up = np.array([0.0, 0.0, 1.0])
+        for sigma_deg, body_up in ((self.config.level_sigma_deg, up),
+                                   (self.config.gravity_sigma_deg, odometry[:3, :3].T @ up)):
+            if sigma_deg > 0:  # AttitudeFactorPose3: the node's rotation takes body_up (body frame) to up
+                noise = gt.noiseModel.Isotropic.Sigma(2, math.radians(sigma_deg))
+                graph.add(gt.AttitudeFactorPose3(node, gt.Unit3(up), noise, gt.Unit3(body_up)))
 
     def _loop_noise(self, gtsam_cov: np.ndarray) -> Any:
         gt = self._gtsam
@@ -619,7 +623,7 @@ class PoseGraphBackend:
 
     def _pose(self, value: Any, name: str, reason: str) -> np.ndarray:
         try:
-            pose = _check_poses(value, name, single=True)
+            pose = check_poses(value, name, single=True)
         except PoseGraphError as err:
             return self._refuse(reason, f"{err} (got {_show(value)})")
         pose[:3, :3] = nearest_rotation(pose[:3, :3])
@@ -666,7 +670,7 @@ class PoseGraphBackend:
             refuse(LOOP_UNKNOWN, f"{name}={t!r} was never seen: the odometry around it is at {lo!r} and "
                                  f"{hi!r}, both more than loops.stamp_tolerance = {tol} s away")
         w = (t - lo) / (hi - lo)
-        return _interpolate(odom[i - 1:i], odom[i:i + 1], np.array([w]))[0]
+        return interpolate_poses(odom[i - 1:i], odom[i:i + 1], np.array([w]))[0]
 
     def _corrections(self, stamps: np.ndarray) -> np.ndarray:
         """(M, 4, 4) map_T_odom at each stamp: node corrections blended in time (module docstring)."""
@@ -679,7 +683,7 @@ class PoseGraphBackend:
         span = node_t[hi] - node_t[lo]
         w = np.where(span > 0, (stamps - node_t[lo]) / np.where(span > 0, span, 1.0), 1.0)
         w = np.clip(w, 0.0, 1.0)
-        return _interpolate(corr[lo], corr[hi], w)
+        return interpolate_poses(corr[lo], corr[hi], w)
 
     def _restore(self, data: dict[str, np.ndarray], where: str) -> None:
         """Rebuild the graph from a saved file's arrays (checked first: nothing is half-restored)."""
@@ -822,69 +826,11 @@ def _compose_covariance(cov: np.ndarray, before: np.ndarray, rel: np.ndarray, af
     return 0.5 * (out + out.T)
 
 
-def _quaternions(r: np.ndarray) -> np.ndarray:
-    """(M, 4) unit quaternions (w, x, y, z) of (M, 3, 3) rotations (the largest-component method)."""
-    m = len(r)
-    q = np.empty((m, 4))
-    tr = np.trace(r, axis1=1, axis2=2)
-    diag = np.stack([tr, r[:, 0, 0], r[:, 1, 1], r[:, 2, 2]], axis=1)
-    k = np.argmax(diag, axis=1)
-    for case in range(4):
-        s = k == case
-        if not s.any():
-            continue
-        rr = r[s]
-        if case == 0:
-            w = np.sqrt(np.maximum(1.0 + tr[s], 1e-12)) / 2.0
-            q[s] = np.stack([w, (rr[:, 2, 1] - rr[:, 1, 2]) / (4 * w), (rr[:, 0, 2] - rr[:, 2, 0]) / (4 * w),
-                             (rr[:, 1, 0] - rr[:, 0, 1]) / (4 * w)], axis=1)
-            continue
-        i = case - 1
-        j, kk = (i + 1) % 3, (i + 2) % 3
-        v = np.sqrt(np.maximum(1.0 + rr[:, i, i] - rr[:, j, j] - rr[:, kk, kk], 1e-12)) / 2.0
-        out = np.empty((int(s.sum()), 4))
-        out[:, 0] = (rr[:, kk, j] - rr[:, j, kk]) / (4 * v)
-        out[:, 1 + i] = v
-        out[:, 1 + j] = (rr[:, j, i] + rr[:, i, j]) / (4 * v)
-        out[:, 1 + kk] = (rr[:, kk, i] + rr[:, i, kk]) / (4 * v)
-        q[s] = out
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
-
-
-def _rotations(q: np.ndarray) -> np.ndarray:
-    """(M, 3, 3) rotations of (M, 4) unit quaternions (w, x, y, z)."""
-    w, x, y, z = q.T
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], axis=1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=1),
-    ], axis=1)
-
-
-def _interpolate(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """(M, 4, 4) poses between ``a`` (w = 0) and ``b`` (w = 1): translation linearly, rotation by slerp."""
-    qa, qb = _quaternions(a[:, :3, :3]), _quaternions(b[:, :3, :3])
-    dot = np.einsum("ni,ni->n", qa, qb)
-    qb = np.where(dot[:, None] < 0, -qb, qb)
-    dot = np.abs(dot).clip(max=1.0)
-    theta = np.arccos(dot)
-    small = theta < 1e-6
-    sin = np.where(small, 1.0, np.sin(theta))
-    ca = np.where(small, 1.0 - w, np.sin((1.0 - w) * theta) / sin)
-    cb = np.where(small, w, np.sin(w * theta) / sin)
-    q = ca[:, None] * qa + cb[:, None] * qb
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    out = np.zeros_like(a)
-    out[:, :3, :3] = _rotations(q)
-    out[:, :3, 3] = (1.0 - w)[:, None] * a[:, :3, 3] + w[:, None] * b[:, :3, 3]
-    out[:, 3, 3] = 1.0
-    return out
-
-
 def config_dict(config: BackendConfig) -> dict[str, Any]:
     """A JSON-ready summary of a config (reports, benchmarks)."""
     out: dict[str, Any] = {name: asdict(getattr(config, name)) for name in ("keyframes", "odometry", "loops")}
     out.update(base_T_lidar=np.asarray(config.base_T_lidar).tolist(), prior_sigma=config.prior_sigma,
-               relinearize_threshold=config.relinearize_threshold, level_sigma_deg=config.level_sigma_deg)
+               relinearize_threshold=config.relinearize_threshold, level_sigma_deg=config.level_sigma_deg,
+               gravity_sigma_deg=config.gravity_sigma_deg)
     return out
 

@@ -340,11 +340,16 @@ class TrajectoryAccuracy:
     frames: int  # frames with a known truth
 
     def text(self) -> str:
-        return (f"{self.rmse:.2f} m (horizontal {self.horizontal:.2f} m, vertical {self.vertical:.2f} m; "
-                f"SE(3)-aligned {self.aligned:.2f} m)")
+        return (f"{_metres(self.rmse)} (horizontal {_metres(self.horizontal)}, vertical {_metres(self.vertical)}; "
+                f"SE(3)-aligned {_metres(self.aligned)})")
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
+
+
+def _metres(value: float) -> str:
+    """Metres to the centimetre, or to the millimetre under 1 m (a LIO's drift is a few cm)."""
+    return f"{value:.3f} m" if abs(value) < 1.0 else f"{value:.2f} m"
 
 
 def trajectory_error(estimate: np.ndarray, truth: np.ndarray) -> TrajectoryAccuracy:

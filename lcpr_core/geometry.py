@@ -12,6 +12,10 @@ import math
 
 import numpy as np
 
+from lcpr_common.rotations import interpolate_poses as interpolate_poses  # re-exported: the core's one home
+from lcpr_common.rotations import quaternions_xyzw as quaternions_xyzw
+from lcpr_common.rotations import rotations_from_xyzw as rotations_from_xyzw
+
 
 def invert(pose: np.ndarray) -> np.ndarray:
     """The inverse of a rigid (4, 4) transform, or of each in a (..., 4, 4) stack: ``(R^T, -R^T t)``."""
@@ -91,36 +95,3 @@ def umeyama_rigid(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, n
     s = np.diag([1.0, 1.0, np.sign(np.linalg.det(u) * np.linalg.det(vt)) or 1.0])
     rot = u @ s @ vt
     return rot, mu_t - rot @ mu_s
-
-
-def quaternions_xyzw(rotations: np.ndarray) -> np.ndarray:
-    """(..., 4) unit quaternions (x, y, z, w; w >= 0, as geometry_msgs orders them) of (..., 3, 3) rotations.
-
-    Shepperd's method, each matrix through its largest component, so no branch divides by a small number.
-    A NaN matrix gives a NaN quaternion.
-    """
-    r = np.asarray(rotations, np.float64)
-    r00, r11, r22 = r[..., 0, 0], r[..., 1, 1], r[..., 2, 2]
-    squares = np.stack([1 + r00 - r11 - r22, 1 - r00 + r11 - r22, 1 - r00 - r11 + r22, 1 + r00 + r11 + r22],
-                       axis=-1) / 4.0  # x^2, y^2, z^2, w^2
-    a, b, c = r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]  # 4w(x, y, z)
-    d, e, f = r[..., 0, 1] + r[..., 1, 0], r[..., 0, 2] + r[..., 2, 0], r[..., 1, 2] + r[..., 2, 1]  # 4xy, 4xz, 4yz
-    k = np.argmax(np.nan_to_num(squares, nan=-1.0), axis=-1)
-    big = 4.0 * np.take_along_axis(squares, k[..., None], -1)[..., 0]  # each branch is 4 q_k (x, y, z, w)
-    with np.errstate(invalid="ignore"):
-        branches = np.stack([np.stack([big, d, e, a], -1), np.stack([d, big, f, b], -1),
-                             np.stack([e, f, big, c], -1), np.stack([a, b, c, big], -1)], axis=-2)
-        q = np.take_along_axis(branches, k[..., None, None], -2)[..., 0, :]
-        q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    return np.where(q[..., 3:] < 0, -q, q)
-
-
-def rotations_from_xyzw(quaternions: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotations of (..., 4) unit quaternions (x, y, z, w); NaN in, NaN out."""
-    q = np.asarray(quaternions, np.float64)
-    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], -2)

@@ -55,7 +55,7 @@ from .geometry import (
 
 __all__ = [
     "DriftModel", "LoopConstraint", "PoseGraphConfig", "PoseGraphResult", "ROBUST_KERNELS",
-    "ate_rmse", "drift_odometry", "lidar_to_body", "optimize_pose_graph", "plot_trajectories",
+    "ate_rmse", "check_covariances", "check_poses", "drift_odometry", "lidar_to_body", "optimize_pose_graph", "plot_trajectories",
     "relative_pose_error", "rotation_angle_deg", "rotation_error_deg", "to_gtsam_covariance", "yaw_deg",
 ]
 
@@ -135,7 +135,7 @@ def drift_odometry(truth: np.ndarray, *, model: DriftModel = DriftModel()) -> tu
     diagonal covariances the noise was drawn from, in the (x, y, z, roll, pitch, yaw)
     order of the module docstring. The same ``model.seed`` gives the same chain.
     """
-    poses = _check_poses(truth, "truth")
+    poses = check_poses(truth, "truth")
     if not isinstance(model, DriftModel):
         raise PoseGraphError(f"model={model!r}; expected a DriftModel")
     n = len(poses)
@@ -174,8 +174,8 @@ class LoopConstraint:
             raise PoseGraphError(f"LoopConstraint query = match = {self.query}; expected two different keyframes")
         object.__setattr__(self, "query", int(self.query))
         object.__setattr__(self, "match", int(self.match))
-        pose = _check_poses(self.match_T_query, "LoopConstraint match_T_query", single=True)
-        cov = _check_covariances(self.covariance, "LoopConstraint covariance", single=True)
+        pose = check_poses(self.match_T_query, "LoopConstraint match_T_query", single=True)
+        cov = check_covariances(self.covariance, "LoopConstraint covariance", single=True)
         pose.flags.writeable = False
         cov.flags.writeable = False
         object.__setattr__(self, "match_T_query", pose)
@@ -226,9 +226,9 @@ def optimize_pose_graph(
     with the chosen m-estimator. Covariances are converted with
     :func:`to_gtsam_covariance`. Levenberg-Marquardt starts from the odometry.
     """
-    poses = _check_poses(odometry, "odometry")
+    poses = check_poses(odometry, "odometry")
     n = len(poses)
-    covs = _check_covariances(step_covariances, "step_covariances")
+    covs = check_covariances(step_covariances, "step_covariances")
     if covs.shape[0] != n - 1:
         raise PoseGraphError(
             f"step_covariances of shape {covs.shape}; expected ({n - 1}, 6, 6), one per step of the {n} odometry poses"
@@ -291,7 +291,7 @@ def to_gtsam_covariance(covariance: np.ndarray, rotation: np.ndarray) -> np.ndar
     ROS: (x, y, z, roll, pitch, yaw) in the parent frame; GTSAM: (rot, trans) in the
     child frame (see the module docstring): ``J P C P^T J^T``, ``J = diag(R^T, R^T)``.
     """
-    cov = _check_covariances(covariance, "covariance", single=True)
+    cov = check_covariances(covariance, "covariance", single=True)
     r = np.asarray(rotation, np.float64)
     if r.shape != (3, 3) or not np.isfinite(r).all():
         raise PoseGraphError(f"rotation of shape {r.shape}; expected a finite (3, 3) rotation matrix")
@@ -332,8 +332,8 @@ def yaw_deg(pose: np.ndarray) -> float:
 
 def rotation_error_deg(estimate_T: np.ndarray, truth_T: np.ndarray) -> float:
     """Angle (deg, 0..180) of the rotation between two (4, 4) poses: |log(R_truth^T R_estimate)|."""
-    est = _check_poses(estimate_T, "estimate_T", single=True)
-    ref = _check_poses(truth_T, "truth_T", single=True)
+    est = check_poses(estimate_T, "estimate_T", single=True)
+    ref = check_poses(truth_T, "truth_T", single=True)
     return float(rotation_angle_deg(ref[:3, :3].T @ est[:3, :3]))
 
 
@@ -342,8 +342,8 @@ def relative_pose_error(estimate_T: np.ndarray, truth_T: np.ndarray) -> tuple[fl
 
     Translation: ``|t_estimate - t_truth|``; yaw: the heading of ``inv(truth_T) @ estimate_T``.
     """
-    est = _check_poses(estimate_T, "estimate_T", single=True)
-    ref = _check_poses(truth_T, "truth_T", single=True)
+    est = check_poses(estimate_T, "estimate_T", single=True)
+    ref = check_poses(truth_T, "truth_T", single=True)
     err = ref[:3, :3].T @ est[:3, :3]
     return float(np.linalg.norm(est[:3, 3] - ref[:3, 3])), abs(heading_deg(err))
 
@@ -353,8 +353,8 @@ def lidar_to_body(match_T_query_lidar: np.ndarray, body_T_lidar: np.ndarray) -> 
 
     ``match_T_query_body = body_T_lidar @ match_T_query_lidar @ inv(body_T_lidar)``.
     """
-    rel = _check_poses(match_T_query_lidar, "match_T_query_lidar", single=True)
-    ext = _check_poses(body_T_lidar, "body_T_lidar", single=True)
+    rel = check_poses(match_T_query_lidar, "match_T_query_lidar", single=True)
+    ext = check_poses(body_T_lidar, "body_T_lidar", single=True)
     return conjugate(ext, rel)
 
 
@@ -410,7 +410,7 @@ def plot_trajectories(
 
 
 # ============================================================================ helpers
-def _check_poses(poses: Any, name: str, *, single: bool = False) -> np.ndarray:
+def check_poses(poses: Any, name: str, *, single: bool = False) -> np.ndarray:
     """A float64 copy of (N, 4, 4) poses (or one (4, 4) pose) with rigid-transform checks."""
     expected = "(4, 4)" if single else "(N, 4, 4)"
     try:
@@ -441,7 +441,7 @@ def _check_poses(poses: Any, name: str, *, single: bool = False) -> np.ndarray:
     return arr
 
 
-def _check_covariances(covs: Any, name: str, *, single: bool = False) -> np.ndarray:
+def check_covariances(covs: Any, name: str, *, single: bool = False) -> np.ndarray:
     """A float64 copy of (K, 6, 6) covariances (or one (6, 6)): finite, symmetric, positive definite."""
     try:
         arr = np.array(covs, dtype=np.float64)

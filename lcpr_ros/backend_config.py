@@ -54,6 +54,7 @@ class BackendNodeConfig:
     path_period: float = 1.0  # s (wall) between ~/path messages at most; a loop publishes at once
     pending_s: float = 5.0  # s of header time a loop waits for the odometry of its stamps
     level_sigma_deg: float = 0.0  # > 0: each node's up axis pulled to the world's up (ground vehicles); 0 = off
+    gravity_sigma_deg: float = 0.0  # > 0: each node's tilt held to the odometry's (LIO: it measures gravity); 0 = off
     graph: MapFileConfig = field(default_factory=MapFileConfig)
     diagnostics: DiagnosticsConfig = field(default_factory=DiagnosticsConfig)
     keyframes: KeyframeRule = field(default_factory=KeyframeRule)
@@ -68,12 +69,14 @@ class BackendNodeConfig:
         require(math.isfinite(self.path_period) and self.path_period > 0,
                 f"path_period={self.path_period}; it must be > 0 s")
         require(math.isfinite(self.pending_s) and self.pending_s >= 0, f"pending_s={self.pending_s}; it must be >= 0")
-        require(math.isfinite(self.level_sigma_deg) and self.level_sigma_deg >= 0,
-                f"level_sigma_deg={self.level_sigma_deg}; it must be >= 0 (0 = off)")
+        for name in ("level_sigma_deg", "gravity_sigma_deg"):
+            value = getattr(self, name)
+            require(math.isfinite(value) and value >= 0, f"{name}={value}; it must be >= 0 (0 = off)")
 
     def backend(self) -> BackendConfig:
         return BackendConfig(base_T_lidar=self.lidar.matrix(), keyframes=self.keyframes, odometry=self.odometry,
-                             loops=self.loops, level_sigma_deg=self.level_sigma_deg)
+                             loops=self.loops, level_sigma_deg=self.level_sigma_deg,
+                             gravity_sigma_deg=self.gravity_sigma_deg)
 
 
 DOCS: dict[str, ParamDoc] = {
@@ -94,6 +97,9 @@ DOCS: dict[str, ParamDoc] = {
     "level_sigma_deg": ParamDoc("deg: std dev of a level prior on every graph node (a ground vehicle level on "
                                 "average, or an IMU's gravity; removes the tilt loops cannot see); 0 = off",
                                 0.0, 90.0),
+    "gravity_sigma_deg": ParamDoc("deg: std dev holding every graph node's roll and pitch to the odometry's, for an "
+                                  "odometry that measures gravity (FAST-LIO2, LIO-SAM, Point-LIO: 0.5); 0 = off "
+                                  "(KISS-ICP and other LiDAR-only odometry drift in tilt)", 0.0, 90.0),
     "graph.path": ParamDoc("graph file (.npz): loaded at start when it exists (the graph continues), saved by "
                            "~/save_graph and at shutdown; empty = in memory only"),
     "graph.save_on_shutdown": ParamDoc("save the graph to graph.path when the node stops (Ctrl-C, SIGTERM)"),

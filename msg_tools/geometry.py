@@ -4,6 +4,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
+from lcpr_common.rotations import interpolate_poses, quaternions_xyzw, rotations_from_xyzw, slerp_xyzw
+
 from .errors import GeometryError
 
 
@@ -15,32 +17,15 @@ def quaternion_to_matrix(q_xyzw: ArrayLike) -> np.ndarray:
     norm = np.linalg.norm(q)
     if norm < 1e-12:
         raise GeometryError(f"quaternion {q.tolist()} has zero length; accepted: a non-zero (unit) quaternion")
-    x, y, z, w = q / norm
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
+    return rotations_from_xyzw(q / norm)
 
 
 def matrix_to_quaternion(R: np.ndarray) -> np.ndarray:
     """3 x 3 rotation -> unit quaternion (x, y, z, w) with w >= 0 (Shepperd's method)."""
     m = np.asarray(R, dtype=np.float64)
-    trace = m[0, 0] + m[1, 1] + m[2, 2]
-    if trace > 0:
-        s = 2.0 * np.sqrt(trace + 1.0)
-        q = np.array([(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s])
-    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-        q = np.array([0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s])
-    elif m[1, 1] > m[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-        q = np.array([(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s])
-    else:
-        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-        q = np.array([(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s])
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
+    if m.shape != (3, 3) or not np.all(np.isfinite(m)):
+        raise GeometryError(f"a rotation must be a finite 3 x 3 matrix, got {m.tolist()}")
+    return quaternions_xyzw(m)
 
 
 def check_pose(T: np.ndarray, *, what: str = "pose", tol: float = 1e-5) -> np.ndarray:
@@ -81,17 +66,8 @@ def invert_pose(T: np.ndarray) -> np.ndarray:
 
 
 def slerp(q0: np.ndarray, q1: np.ndarray, alpha: float) -> np.ndarray:
-    """Spherical interpolation between unit quaternions (shortest arc); alpha in [0, 1]."""
-    a = np.asarray(q0, dtype=np.float64) / np.linalg.norm(q0)
-    b = np.asarray(q1, dtype=np.float64) / np.linalg.norm(q1)
-    dot = float(np.dot(a, b))
-    if dot < 0.0:
-        b, dot = -b, -dot
-    if dot > 0.9995:  # nearly parallel: normalised lerp is accurate and stable
-        q = a + alpha * (b - a)
-        return q / np.linalg.norm(q)
-    theta = np.arccos(min(dot, 1.0))
-    return (np.sin((1 - alpha) * theta) * a + np.sin(alpha * theta) * b) / np.sin(theta)
+    """Spherical interpolation between unit quaternions (x, y, z, w; shortest arc); alpha in [0, 1]."""
+    return slerp_xyzw(np.asarray(q0, np.float64), np.asarray(q1, np.float64), alpha)
 
 
 def interpolate_pose(T0: np.ndarray, T1: np.ndarray, alpha: float) -> np.ndarray:
@@ -100,6 +76,4 @@ def interpolate_pose(T0: np.ndarray, T1: np.ndarray, alpha: float) -> np.ndarray
         return np.array(T0, dtype=np.float64)
     if alpha == 1.0:
         return np.array(T1, dtype=np.float64)
-    t0, q0 = pose_to_parts(T0)
-    t1, q1 = pose_to_parts(T1)
-    return pose_from_parts(t0 + alpha * (t1 - t0), slerp(q0, q1, alpha))
+    return interpolate_poses(check_pose(T0), check_pose(T1), alpha)

@@ -1,13 +1,15 @@
-"""The back end on real LiDAR: KISS-ICP on the Livox sequences, LiDAR-only loops, ATE before and after.
+"""The back end on real LiDAR: real odometry on the Livox sequences, LiDAR-only loops, ATE before and after.
 
-    python benchmarks/tools/backend_ate_real.py [--sets walk_loop campus] [--inject 5 20] [--kiss-max-range 100]
-                                                [--out out/backend_ate_real]
+    python benchmarks/tools/backend_ate_real.py [--odometry kiss-icp|fast-lio2] [--sets walk_loop campus]
+                                                [--inject 5 20] [--kiss-max-range 100] [--out out/backend_ate_real]
 
 For each scan folder of ``../shared/data/livox_hku`` (handheld Livox Avia, about 70 deg field of view):
 
-1. KISS-ICP (lcpr_core.lidar_odometry; its default settings, or ``--kiss-max-range`` and ``--kiss-min-range``:
-   KISS-ICP's voxels are max_range / 100) over the scans in order: the odometry, with its real
-   registration drift, started at the first reference pose;
+1. the odometry, with its real drift, started at the first reference pose: ``kiss-icp`` (default) runs
+   KISS-ICP (lcpr_core.lidar_odometry; its default settings, or ``--kiss-max-range`` and
+   ``--kiss-min-range``: KISS-ICP's voxels are max_range / 100) over the scans in order; ``fast-lio2``
+   reads the folder's ``odom_poses.txt``, the LiDAR-inertial odometry (FAST-LIO2) the sequence was
+   recorded with, before its own loop closing: the "LIO without loop closure" a user brings;
 2. the detector in its LiDAR-only mode (bundled weights, every camera slot empty, the node's default
    keyframing, matching and verification: what ``lcpr_node lidar_only:=true`` runs) on every scan, with
    the KISS-ICP pose as the frame's pose;
@@ -45,21 +47,24 @@ if TYPE_CHECKING:  # the package (and torch with it) is imported after the argum
     from lcpr_core.lidar_odometry import KissConfig
 
 SETS = ("walk_loop", "campus")
+ODOMETRY = ("kiss-icp", "fast-lio2")
 WRONG_M, WRONG_DEG = 0.3, 2.0  # a loop this far off the reference's relative pose is wrong (verify_real.py's rule)
 
 
-def loop_errors(stream: LoopStream) -> tuple[np.ndarray, np.ndarray]:
-    """(m, deg) error of each loop's match_T_query against the reference's relative pose."""
+def loop_errors(stream: LoopStream, *, against: str = "truth") -> tuple[np.ndarray, np.ndarray]:
+    """(m, deg) error of each loop's match_T_query against the relative pose of the reference (``truth``) or of
+    the odometry (``odometry``)."""
     from lcpr_core.geometry import rotation_angle_deg
 
-    lidar = stream.truth @ stream.base_T_lidar
+    lidar = getattr(stream, against) @ stream.base_T_lidar
     ref = np.linalg.inv(lidar[stream.loops[:, 1]]) @ lidar[stream.loops[:, 0]]
     err = np.linalg.inv(ref) @ stream.loop_T
     return np.linalg.norm(err[:, :3, 3], axis=1), np.asarray(rotation_angle_deg(err[:, :3, :3])).reshape(-1)
 
 
-def record(folder: Path, *, threads: int, kiss: KissConfig) -> LoopStream:
-    """KISS-ICP and the LiDAR-only detector over one scan folder; the stream of what they produced."""
+def record(folder: Path, *, threads: int, kiss: KissConfig | None) -> LoopStream:
+    """The odometry (KISS-ICP, or the folder's ``odom_poses.txt`` when ``kiss`` is None) and the LiDAR-only
+    detector over one scan folder; the stream of what they produced."""
     from lcpr_common.progress import progress_iter
     from lcpr_core.backend_replay import StreamRecorder
     from lcpr_core.detector import DetectorConfig, Frame, LoopDetector
@@ -72,7 +77,11 @@ def record(folder: Path, *, threads: int, kiss: KissConfig) -> LoopStream:
     if weights is None:
         raise SystemExit("backend_ate_real: the bundled weights are not installed (weights/lcpr_synth_narrow.pth)")
     seq = ScanFolder(folder)  # optimized_poses.txt: the reference
-    odometry = KissOdometry(kiss, world_T_base0=seq.poses[0])  # scans in the body frame
+    if kiss is not None:
+        odometry = KissOdometry(kiss, world_T_base0=seq.poses[0])  # scans in the body frame
+    else:  # the recorded LIO odometry, moved to start at the first reference pose
+        lio = ScanFolder(folder, poses_file="odom_poses.txt").poses
+        lio = seq.poses[0] @ np.linalg.inv(lio[0]) @ lio
     model = ModelConfig(weights=weights, threads=threads)
     detector = LoopDetector(DetectorConfig(model=model))
     empty = [None] * model.num_cameras  # LiDAR only: every camera slot empty
@@ -83,7 +92,7 @@ def record(folder: Path, *, threads: int, kiss: KissConfig) -> LoopStream:
         xyz, stamp = seq.points(i), float(seq.stamps[i])
         seconds["read"] += time.perf_counter() - tic
         tic = time.perf_counter()
-        pose = odometry.register(xyz, stamp)
+        pose = odometry.register(xyz, stamp) if kiss is not None else lio[i]
         recorder.add_frame(stamp, odometry=pose, truth=seq.poses[i])
         seconds["kiss_icp"] += time.perf_counter() - tic
         tic = time.perf_counter()
@@ -102,6 +111,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--inject-seed", type=int, default=0)
     p.add_argument("--false-min-m", type=float, default=10.0,
                    help="m (by the reference) between the keyframes a false loop joins (default 10)")
+    p.add_argument("--odometry", choices=ODOMETRY, default=ODOMETRY[0],
+                   help="kiss-icp: run KISS-ICP on the scans (default); fast-lio2: the folder's odom_poses.txt")
+    p.add_argument("--gravity-sigma", type=float, default=0.0,
+                   help="deg: the back end's gravity prior (BackendConfig.gravity_sigma_deg; 0 = off, the default; "
+                        "0.5 is the documented setting for a LIO such as FAST-LIO2)")
     p.add_argument("--kiss-max-range", type=float, default=None,
                    help="KISS-ICP's max_range in m (its voxels are a hundredth of it; default KissConfig's 100)")
     p.add_argument("--kiss-min-range", type=float, default=None,
@@ -124,13 +138,22 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     cpu = cpu_model()
     print(f"CPU: {cpu}, {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}")
-    config = BackendConfig()
+    config = BackendConfig(gravity_sigma_deg=args.gravity_sigma)
     given = (("max_range", args.kiss_max_range), ("min_range", args.kiss_min_range))
     ranges = {k: v for k, v in given if v is not None}
     kiss = KissConfig(threads=args.threads, **ranges)
-    tag = f"kiss{kiss.max_range:g}m_{kiss.min_range:g}m"
-    print(f"KISS-ICP: max_range {kiss.max_range:g} m, min_range {kiss.min_range:g} m, voxels "
-          f"{kiss.voxel_size or kiss.max_range / 100:g} m; back end: defaults")
+    kiss_icp = args.odometry == "kiss-icp"
+    if kiss_icp:
+        tag = f"kiss{kiss.max_range:g}m_{kiss.min_range:g}m"
+        print(f"KISS-ICP: max_range {kiss.max_range:g} m, min_range {kiss.min_range:g} m, voxels "
+              f"{kiss.voxel_size or kiss.max_range / 100:g} m; back end: defaults")
+    else:
+        tag = "fastlio2"
+        print("odometry: the sequences' FAST-LIO2 odom_poses.txt; back end: defaults")
+    if args.gravity_sigma > 0:
+        print(f"back end: gravity prior {args.gravity_sigma:g} deg (the nodes' tilt held to the odometry's)")
+    label = "KISS-ICP" if kiss_icp else "FAST-LIO2"
+    tag_out = f"{tag}_gravity{args.gravity_sigma:g}" if args.gravity_sigma > 0 else tag  # outputs; the cache: tag
     rows = []
     for name in args.sets:
         cache = args.out / f"stream_{name}_{tag}.npz"
@@ -138,7 +161,7 @@ def main(argv: list[str] | None = None) -> int:
             stream = LoopStream.load(cache)
             print(f"\n{name}: reusing {cache}")
         else:
-            stream = record(data / name, threads=args.threads, kiss=kiss)
+            stream = record(data / name, threads=args.threads, kiss=kiss if kiss_icp else None)
             stream.save(cache)
         n = len(stream.stamps)
         times = ", ".join(f"{k} {v / n * 1e3:.0f} ms/scan" for k, v in stream.seconds.items())
@@ -148,20 +171,21 @@ def main(argv: list[str] | None = None) -> int:
               "(means)")
         print(f"  detector: {len(stream.loops)} verified candidates, {int(wrong.sum())} wrong (> {WRONG_M} m or "
               f"{WRONG_DEG:g} deg off the reference); median error "
-              f"{np.median(err_m) if len(err_m) else math.nan:.2f} m")
+              f"{np.median(err_m) if len(err_m) else math.nan:.3f} m; against the odometry's relative pose "
+              f"{np.median(loop_errors(stream, against='odometry')[0]) if len(err_m) else math.nan:.3f} m")
         before = trajectory_error(stream.odometry, stream.truth)
         clean = replay(stream, config=config)
         after = trajectory_error(clean.trajectory, stream.truth)
         ms = np.array(clean.loop_ms)
-        print(f"  ATE KISS-ICP odometry {before.text()}\n  ATE with the back end {after.text()} "
+        print(f"  ATE {label} odometry {before.text()}\n  ATE with the back end {after.text()} "
               f"({after.rmse / before.rmse:.0%} of before; aligned {after.aligned / before.aligned:.0%})")
         print(f"  loops: {int(clean.accepted.sum())} accepted ({int((clean.accepted & wrong).sum())} wrong), "
               f"{int((~clean.accepted).sum()) - len(clean.refused)} rejected ({int((~clean.accepted & wrong).sum())} "
               f"wrong), {len(clean.refused)} refused"
               + (f"; add_loop p50 {np.median(ms):.1f} ms, p95 {np.percentile(ms, 95):.1f} ms" if len(ms) else ""))
-        png = args.out / f"backend_ate_real_{name}_{tag}.png"
+        png = args.out / f"backend_ate_real_{name}_{tag_out}.png"
         plot_trajectories(stream.truth, stream.odometry, clean.trajectory, png, loops=loop_pairs(stream, clean),
-                          title=f"{name}: KISS-ICP + LiDAR-only loops + back end ({tag})")
+                          title=f"{name}: {label} + LiDAR-only loops + back end ({tag_out})")
         row: dict[str, object] = {"set": name, "scans": n, "length_m": stream.length_m, "loops": len(stream.loops),
                                   "wrong_loops": int(wrong.sum()), "accepted": int(clean.accepted.sum()),
                                   "accepted_wrong": int((clean.accepted & wrong).sum()), "odometry": before.to_dict(),
@@ -179,10 +203,11 @@ def main(argv: list[str] | None = None) -> int:
                                     "down_weighted": dirty.injected_down_weighted,
                                     "weights": dirty.injected_weights, "ate": ate.to_dict()})
         rows.append(row)
-    summary = {"cpu": cpu, "kiss_icp": {"max_range": kiss.max_range, "min_range": kiss.min_range},
+    summary = {"cpu": cpu, "odometry": args.odometry, "gravity_sigma_deg": args.gravity_sigma,
+               "kiss_icp": {"max_range": kiss.max_range, "min_range": kiss.min_range} if kiss_icp else None,
                "backend": config_dict(config), "false_min_m": args.false_min_m, "sets": rows}
-    write_bytes_atomic(args.out / f"backend_ate_real_{tag}.json", json.dumps(summary, indent=2).encode())
-    print(f"\nwritten: {args.out}/backend_ate_real_{tag}.json and backend_ate_real_*_{tag}.png")
+    write_bytes_atomic(args.out / f"backend_ate_real_{tag_out}.json", json.dumps(summary, indent=2).encode())
+    print(f"\nwritten: {args.out}/backend_ate_real_{tag_out}.json and backend_ate_real_*_{tag_out}.png")
     return 0
 
 

@@ -347,20 +347,23 @@ class LoopDetector:
             self._prepared.clear()
         query_sub = self._submap(candidates[0].query_id, before_only=True)
         first = None if query_sub is None else query_sub.rows[0]  # the query's own keyframes start here
-        queries = {False: self.verifier.prepare(compact if query_sub is None else query_sub.xyz)}
+        query = self.verifier.prepare(compact if query_sub is None else query_sub.xyz)
+        scan_alone: PreparedCloud | None = None  # the query keyframe alone, prepared on first need
         out = []
         for c in candidates:
             row = self.map.row_of(c.match_id)
-            inside = first is not None and row is not None and row >= first  # a keyframe the query stitched
-            if inside and True not in queries:  # that pair is verified scan against scan
-                queries[True] = self.verifier.prepare(compact)
-            query = queries[inside]
+            if first is not None and row is not None and row >= first:  # a keyframe the query stitched:
+                if scan_alone is None:  # that pair is verified scan against scan
+                    scan_alone = self.verifier.prepare(compact)
+                source = scan_alone
+            else:
+                source = query
             match = self._prepared_cloud(c.match_id, end=first)
             if match is None:
                 out.append(dataclasses.replace(c, verification="no cloud"))
                 continue
             try:
-                v = self.verifier.verify_prepared(query, match)
+                v = self.verifier.verify_prepared(source, match)
             except Exception as err:  # noqa: BLE001 - a bad pair must not cost the keyframe
                 v = Verification(False, "failed", np.eye(4), 0.0)
                 errors.append(f"verification of {c.query_id} against {c.match_id}: {type(err).__name__}: {err}")

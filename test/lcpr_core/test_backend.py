@@ -164,6 +164,28 @@ def test_a_level_prior_removes_a_tilt_the_odometry_picked_up_and_is_off_by_defau
         BackendConfig(level_sigma_deg=-1.0)
 
 
+def test_a_gravity_prior_keeps_the_odometrys_tilt_against_a_loop_that_would_bend_it() -> None:
+    up = math.radians(-4.0)  # a 4 deg ramp, out and back, which an odometry with an IMU measures right
+    out = [pose(x * math.cos(up), 0.0, -x * math.sin(up), pitch=-4.0) for x in np.arange(0.0, 60.0, 1.0)]
+    back = [pose(x * math.cos(up), 0.5, -x * math.sin(up), yaw=180.0, pitch=4.0) for x in np.arange(59.0, -1.0, -1.0)]
+    truth = np.stack(out + back)
+    stamps = T0 + DT * np.arange(len(truth))
+    claimed = np.linalg.inv(truth[0]) @ truth[-1] @ pose(pitch=1.5)  # a loop 1.5 deg off in pitch
+
+    def tilt_error_deg(config: BackendConfig) -> float:
+        g = fed(stamps, truth, config)
+        g.add_loop(float(stamps[-1]), float(stamps[0]), claimed, LOOP_COV)
+        corrected = g.trajectory()[1]
+        cos = np.einsum("ni,ni->n", corrected[:, 2, :3], truth[:, 2, :3])  # the world's up in each body frame
+        return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).max())
+
+    assert tilt_error_deg(BackendConfig()) > 0.5  # without it the loop tilts the graph
+    assert tilt_error_deg(BackendConfig(gravity_sigma_deg=0.1)) < 0.25  # with it the ramp keeps its measured slope
+    assert tilt_error_deg(BackendConfig(level_sigma_deg=0.1)) > 3.0  # the level prior is the wrong one here
+    with pytest.raises(BackendError, match=r"gravity_sigma_deg=-0\.5; expected a finite number >= 0"):
+        BackendConfig(gravity_sigma_deg=-0.5)
+
+
 # ============================================================================ keyframes and poses
 def test_keyframing_adds_a_node_per_metre_or_turn_not_per_message() -> None:
     stamps, truth, drifted, _ = drive(step=0.1)  # 0.1 m per message: ten messages per metre
