@@ -25,18 +25,22 @@ from .geometry import quaternions_xyzw, rotations_from_xyzw
 from .growable import GrowableArray
 from .map_file import check_header_fields, read_map_file, write_map_file
 from .map_rows import MapRows, RowAccess
+from .scan_context import ScanContextConfig, ScanContextRows
 from .verification.clouds import CloudStore
 
 __all__ = ["MapConfig", "Match", "DescriptorMap", "INDEX_TYPES", "SCHEMA_VERSION"]
 
 INDEX_TYPES: tuple[str, ...] = ("flat", "hnsw")
 # 2: keyframe clouds (cloud_ids, cloud_counts, cloud_points); 3: orientations (the full odometry pose, for
-# submaps). Version 1 and 2 files still load (their orientations unknown: NaN).
+# submaps); optional in 3: scan_contexts (with the header record of what made them). Version 1 and 2 files
+# still load (their orientations unknown: NaN).
 SCHEMA_VERSION = 3
 _READABLE_VERSIONS = (1, 2, 3)
 _FORMAT = "lcpr_core.descriptor_map"
 _NPZ_KEYS = ("descriptors", "ids", "stamps", "poses", "source_codes")
 _CLOUD_KEYS = ("cloud_ids", "cloud_counts", "cloud_points")
+_SCAN_CONTEXTS = "scan_contexts"  # (N, rings, sectors) float32, optional: saved when match.method made them
+_SC_HEADER = "scan_context"  # the header's record of what made them (ScanContextConfig.describing)
 _ORIENTATIONS = "orientations"  # (N, 4) unit quaternions x, y, z, w of world_T_base; schema version >= 3
 _ROTATION_TOLERANCE = 1e-4  # how far from orthonormal (det +1) a pose's rotation block may be
 # A filtered search over at most this many allowed rows is done exactly (brute force).
@@ -113,6 +117,8 @@ class DescriptorMap(RowAccess):
         self._source_names: list[str] = []
         self._source_lookup: dict[str, int] = {}
         self.clouds = CloudStore()  # compact keyframe clouds for geometric verification, by id
+        #: row-aligned Scan Contexts of the keyframes' raw clouds (match.method scan_context / fused), or None
+        self.scan_contexts: ScanContextRows | None = None
 
     # ------------------------------------------------------------------ accessors
     @property
@@ -356,6 +362,10 @@ class DescriptorMap(RowAccess):
             "source_codes": self._source_codes.view(),
             **self.clouds.to_arrays(),
         }
+        scs = self.scan_contexts
+        if scs is not None and len(scs) == len(self):  # kept only when every row has its row
+            header[_SC_HEADER] = scs.config.describing()
+            arrays[_SCAN_CONTEXTS] = np.ascontiguousarray(scs.matrices())
         write_map_file(path, header, arrays, kind="descriptor map")
 
     @classmethod
@@ -368,7 +378,8 @@ class DescriptorMap(RowAccess):
         """
         where = os.fspath(path)
         header, data = read_map_file(where, kind="map file", file_format=_FORMAT, versions=_READABLE_VERSIONS,
-                                     required=_NPZ_KEYS, optional_group=_CLOUD_KEYS, optional=(_ORIENTATIONS,))
+                                     required=_NPZ_KEYS, optional_group=_CLOUD_KEYS,
+                                     optional=(_ORIENTATIONS, _SCAN_CONTEXTS))
         check_header_fields(header, (("dim", int), ("model", str), ("index", str), ("count", int),
                                      ("sources", list)), kind="map file", where=where)
         if not all(isinstance(name, str) for name in header["sources"]):
@@ -399,6 +410,7 @@ class DescriptorMap(RowAccess):
                 out.clouds = CloudStore.from_arrays(data, where=f"map file {where}")
             except LcprError as err:
                 raise MapError(str(err)) from err
+        out.scan_contexts = _check_scan_contexts(data, header, where)
         return out
 
 
@@ -507,6 +519,29 @@ def _check_orientations(data: dict[str, np.ndarray], header: dict[str, Any], whe
     if (~known & ~np.isnan(q).all(axis=1)).any() or (np.abs(np.linalg.norm(q[known], axis=1) - 1.0) > 1e-6).any():
         raise MapError(f"map file {where}: {_ORIENTATIONS} holds rows that are neither unit quaternions nor all NaN")
     return q
+
+
+def _check_scan_contexts(data: dict[str, np.ndarray], header: dict[str, Any], where: str) -> ScanContextRows | None:
+    """The file's Scan Context rows, or None when it has none (they are rebuilt from the clouds when needed)."""
+    if _SCAN_CONTEXTS not in data:
+        return None
+    made = header.get(_SC_HEADER)
+    try:
+        config = ScanContextConfig(**made) if isinstance(made, dict) else None
+    except (TypeError, LcprError) as err:
+        raise MapError(f"map file {where}: header field {_SC_HEADER!r} is {made!r} ({err})") from err
+    if config is None:
+        raise MapError(f"map file {where} holds {_SCAN_CONTEXTS} but its header has no {_SC_HEADER!r} record "
+                       "of what made them")
+    m = data[_SCAN_CONTEXTS]
+    shape = (header["count"], config.num_rings, config.num_sectors)
+    if m.shape != shape or m.dtype != np.float32 or not np.isfinite(m).all() or (m < 0).any():
+        raise MapError(f"map file {where}: {_SCAN_CONTEXTS} has shape {m.shape} dtype {m.dtype}; expected {shape} "
+                       "finite float32 heights >= 0")
+    rows = ScanContextRows(config)
+    for sc in m:
+        rows.add(sc if sc.any() else None)
+    return rows
 
 
 def _config_from_header(header: dict[str, Any], where: str) -> MapConfig:

@@ -67,6 +67,12 @@ class ScanContextConfig:
         if not np.isfinite(self.lidar_height):
             raise InvalidValueError(f"ScanContextConfig.lidar_height={self.lidar_height!r}; it must be a finite number")
 
+    def describing(self) -> dict[str, float | int]:
+        """What makes a scan context out of a cloud (not how it is searched): equal here, equal matrices."""
+        return {"num_rings": int(self.num_rings), "num_sectors": int(self.num_sectors),
+                "max_range": float(self.max_range), "min_range": float(self.min_range),
+                "lidar_height": float(self.lidar_height)}
+
 
 def scan_context(points: np.ndarray, *, config: ScanContextConfig | None = None) -> np.ndarray:
     """N x (>=3) points (x, y, z, ...) -> num_rings x num_sectors float32 max heights (0 = empty bin).
@@ -290,6 +296,17 @@ class ScanContextRows:
         self._keys.extend(ring_key(m, kind=cfg.ring_key)[None])
         self._occupied.extend(np.array([bool(m.any())]))
         return len(self) - 1
+
+    def matrices(self) -> np.ndarray:
+        """(N, rings, sectors) view of every row's scan context (zeros: a row without one)."""
+        return self._scs.view()
+
+    def with_config(self, config: ScanContextConfig) -> ScanContextRows:
+        """The same scan contexts under another config of the same shape (its search settings, its ring keys)."""
+        out = ScanContextRows(config)
+        for m in self.matrices():
+            out.add(m if m.any() else None)
+        return out
 
     def search(self, sc: np.ndarray, *, rows: int, k: int, max_distance: float = 1.0) -> list[tuple[int, float]]:
         """(row, sc_distance) of the best ``k`` among rows ``[0, rows)``, nearest first, distances <= max_distance.

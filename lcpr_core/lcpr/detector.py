@@ -491,17 +491,25 @@ class LoopDetector:
         return out
 
     def _prior_scan_contexts(self) -> ScanContextRows:
-        """Scan Context rows for the map's existing keyframes, rebuilt from their stored compact clouds (a
-        keyframe without one is never proposed by Scan Context)."""
-        rows = ScanContextRows(ScanContextConfig(candidates=SC_CANDIDATES_PER_K * self.config.match.top_k))
-        missing = 0
-        for kf in self.map.ids.tolist():
-            xyz = self.map.clouds.get(int(kf))
-            missing += xyz is None
-            rows.add(None if xyz is None else rows.describe(xyz))
-        if len(self.map):
-            log.info("match.method %s: Scan Contexts of the prior map's %d keyframes rebuilt from their clouds "
-                     "(%d have none and are never proposed by it)", self.config.match.method, len(self.map), missing)
+        """Scan Context rows for the map's existing keyframes: those the map file kept when they were made as
+        these are, else rebuilt from the stored compact clouds (a keyframe without one is never proposed by Scan
+        Context); the map holds them from here on, so a saved map keeps them."""
+        config = ScanContextConfig(candidates=SC_CANDIDATES_PER_K * self.config.match.top_k)
+        kept = self.map.scan_contexts
+        if kept is not None and len(kept) == len(self.map) and kept.config.describing() == config.describing():
+            rows = kept.with_config(config)
+            log.info("match.method %s: the prior map's %d Scan Contexts loaded", self.config.match.method, len(rows))
+        else:
+            rows, missing = ScanContextRows(config), 0
+            for kf in self.map.ids.tolist():
+                xyz = self.map.clouds.get(int(kf))
+                missing += xyz is None
+                rows.add(None if xyz is None else rows.describe(xyz))
+            if len(self.map):
+                log.info("match.method %s: Scan Contexts of the prior map's %d keyframes rebuilt from their clouds "
+                         "(%d have none and are never proposed by it)", self.config.match.method, len(self.map),
+                         missing)
+        self.map.scan_contexts = rows
         return rows
 
     def _excluded_count(self, stamp: float) -> int:

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from lcpr_core.errors import InvalidValueError
+from lcpr_core.descriptor_map import DescriptorMap
+from lcpr_core.errors import InvalidValueError, MapError
 from lcpr_core.lcpr.describer import Describer, Prepared
 from lcpr_core.lcpr.detector import MATCH_METHODS, DetectorConfig, Frame, LoopDetector, MatchConfig
 from lcpr_core.scan_context import ScanContextConfig, ScanContextRows, scan_context
@@ -135,3 +136,38 @@ def test_scan_context_rows_search_only_the_rows_asked_and_skip_empty_ones():
     assert 3 not in [row for row, _ in rows.search(query, rows=5, k=5)]
     elsewhere = scan_context(place_cloud(7))
     assert rows.search(elsewhere, rows=5, k=5) and rows.search(elsewhere, rows=5, k=5, max_distance=0.05) == []
+
+
+def test_a_saved_map_keeps_the_scan_contexts_of_the_raw_scans_and_a_new_detector_uses_them(tmp_path):
+    made = detector("scan_context", verify=VerifierConfig())  # the clouds kept are compact: voxelised, capped
+    clouds = [place_cloud(t) for t in range(4)]
+    for t, cloud in enumerate(clouds):
+        made.process(scan(1000.0 + t, cloud))
+    path = tmp_path / "map.npz"
+    made.map.save(path)
+    loaded = DescriptorMap.load(path)
+    assert loaded.scan_contexts is not None
+    raw = np.stack([scan_context(c) for c in clouds])
+    np.testing.assert_array_equal(loaded.scan_contexts.matrices(), raw)  # the raw scans', not the compact clouds'
+    assert not np.array_equal(scan_context(loaded.clouds.get(int(loaded.ids[0]))), raw[0])
+    det = LoopDetector(DetectorConfig(match=MatchConfig(method="scan_context", top_k=3), verify=RETRIEVAL_ONLY),
+                       describer=cast(Describer, NoPlaceDescriber()), prior_map=loaded)
+    np.testing.assert_array_equal(det.map.scan_contexts.matrices(), raw)
+    r = det.process(scan(0.0, place_cloud(2, yaw_deg=-25.0)))
+    assert r.loop is not None and r.loop.match_id == 2
+    det.map.save(path)  # the new keyframe's row joins them
+    assert len(DescriptorMap.load(path).scan_contexts) == 5
+
+
+def test_a_map_made_without_scan_contexts_saves_none_and_bad_ones_are_refused(tmp_path):
+    made = detector("lcpr", verify=VerifierConfig())
+    made.process(scan(1000.0, place_cloud(0)))
+    path = tmp_path / "map.npz"
+    made.map.save(path)
+    assert DescriptorMap.load(path).scan_contexts is None
+    with np.load(path) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    arrays["scan_contexts"] = np.zeros((1, 20, 60), np.float32)  # without the record of what made them
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(MapError, match="holds scan_contexts but its header has no 'scan_context' record"):
+        DescriptorMap.load(tmp_path / "bad.npz")
