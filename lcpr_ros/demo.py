@@ -1,6 +1,6 @@
 """The end-to-end demo: a synthetic drive with loops, replayed through DDS into a real lcpr_node.
 
-    lcpr_demo [--frames 160] [--seed 0] [--weights FILE | --seeded] [--rate 1.0] [--out out/demo]
+    lcpr_demo [--frames 200] [--seed 7] [--weights FILE | --seeded] [--rate 1.0] [--out out/demo]
 
 1. makes (or reuses) a synthetic-city drive with revisits (nuScenes-like rig) as a rosbag2;
 2. starts ``lcpr_node`` as its own process (a private ROS_DOMAIN_ID);
