@@ -54,6 +54,9 @@ class VerifierConfig:
     - the overlap (share of each cloud's points whose nearest neighbour in the other
       cloud is within ``inlier_distance`` and that lie within ``plane_distance`` of that
       neighbour's local plane; the mean of the two shares) is at least ``min_fitness``;
+      each share is estimated from an evenly spaced sample of about ``overlap_points``
+      points searched in the other's full cloud, and read from every point when the
+      estimate lies within ``overlap_recheck`` of ``min_fitness``;
     - the inlier RMSE is at most ``max_rmse``;
     - the fine stage (full compact clouds) moved the pose at most ``max_correction_m`` /
       ``max_correction_deg`` away from the coarse stage's result it started from: the two
@@ -76,6 +79,9 @@ class VerifierConfig:
     yaw_hypotheses: int = 4  # Scan Context shifts tried
     bev_cell: float = 1.0  # m, bird's-eye-view cell of the x/y cross-correlation
     bev_extent: float = 48.0  # m, half width of the bird's-eye view
+    # the views are made of an evenly spaced sample of about this many points; 0: all (the default: a sample moves
+    # the x/y peaks, which won and lost walk_loop pairs alike)
+    bev_points: int = 0
     registrations: int = 2  # BEV hypotheses registered at the coarse level (with 2 more starts, see starts())
     # registration
     coarse_voxel: float = 2.0  # m, first voxel tried for the coarse stage's clouds ...
@@ -85,8 +91,19 @@ class VerifierConfig:
     coarse_distance: float = 3.0  # m, max correspondence distance of the coarse stage
     fine_distance: float = 1.0  # m, of the fine stage
     coarse_iterations: int = 15  # a right start converges in a few; a narrow field of view needs more (verify_tune.py)
+    # the coarse stage stops once an iteration moves the pose less than this (small_gicp's own default is 1 mm /
+    # 0.1 deg: far finer than 2 m voxels resolve; the fine stage refines the pose from there)
+    coarse_epsilon_m: float = 0.03
+    coarse_epsilon_deg: float = 0.5
     max_iterations: int = 10  # of the fine stage (it starts from a converged coarse pose)
-    fine_points: int = 3072  # the fine stage registers clouds resampled to about this many; acceptance reads all
+    fine_points: int = 3072  # the fine stage registers clouds resampled to about this many
+    # the overlap is estimated from an evenly spaced sample of each cloud's points (every k-th, at most about
+    # this many) searched in the other's full cloud (dense surfaces; a sparse sample is unbiased); 0 reads all
+    overlap_points: int = 3072
+    # a sampled overlap within this of min_fitness is read again from every point: the verdict on a borderline
+    # pair is the full overlap's (walk_loop pairs at 0.475-0.479 fell 0.005 under min_fitness from a sample)
+    overlap_recheck: float = 0.03
+    coarse_overlap_points: int = 512  # the same for ranking the coarse results (every 8th point at least)
     # acceptance
     inlier_distance: float = 0.6  # m, nearest-neighbour reach of an inlier
     plane_distance: float = 0.1  # m, its distance to the neighbour's local plane
@@ -107,7 +124,12 @@ class VerifierConfig:
                   "coarse_voxel", "coarse_points", "fine_points", "coarse_distance", "fine_distance",
                   "coarse_iterations", "max_iterations", "inlier_distance", "plane_distance", "max_rmse",
                   "max_correction_m", "max_correction_deg", "covariance_inflation")
-        _non_negative(self, "coarse_accept", "early_reject", "min_constraint", "min_sigma_m", "min_sigma_deg")
+        _non_negative(self, "coarse_accept", "early_reject", "min_constraint", "min_sigma_m", "min_sigma_deg",
+                      "coarse_epsilon_m", "coarse_epsilon_deg", "overlap_recheck")
+        for name in ("overlap_points", "coarse_overlap_points", "bev_points"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise VerificationError(f"verify.{name}={value!r}; accepted: an integer >= 0 (0: every point)")
         if not 0.0 <= self.min_fitness <= 1.0:
             raise VerificationError(f"verify.min_fitness={self.min_fitness!r}; accepted: 0 <= min_fitness <= 1")
         if self.bev_extent / self.bev_cell > 1024:

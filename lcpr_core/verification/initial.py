@@ -106,14 +106,26 @@ class BevMatcher:
         self._offsets = offsets
         self._window = np.abs(offsets) <= reach
 
-    def locate(self, query_xyz: np.ndarray, yaw: float) -> Hypothesis:
-        """Best x/y for ``yaw``: where match(x) ~ rotated query(x - t)."""
+    @property
+    def key(self) -> tuple[float, float, int]:
+        """(cell, extent, padded size): matchers with one key take the same query spectra."""
+        return self.cell, self.extent, self._pad
+
+    def query_spectrum(self, query_xyz: np.ndarray, yaw: float) -> tuple[np.ndarray, float]:
+        """(conjugate spectrum, norm) of the query's view turned by ``yaw``: what :meth:`locate` needs of the
+        query, the same for every match with this :attr:`key` (a query's candidates share it)."""
         image = bev_image(rotate_z(query_xyz, math.degrees(yaw)), cell=self.cell, extent=self.extent)
-        norm = float(np.linalg.norm(image)) * self._norm
+        return np.conj(np.fft.rfft2(image, s=(self._pad, self._pad))), float(np.linalg.norm(image))
+
+    def locate(self, query_xyz: np.ndarray, yaw: float, *,
+               spectrum: tuple[np.ndarray, float] | None = None) -> Hypothesis:
+        """Best x/y for ``yaw``: where match(x) ~ rotated query(x - t). ``spectrum``: :meth:`query_spectrum`'s
+        answer for this query and yaw when the caller keeps it."""
+        query_conj, query_norm = spectrum if spectrum is not None else self.query_spectrum(query_xyz, yaw)
+        norm = query_norm * self._norm
         if norm <= 0.0:
             return Hypothesis(yaw, 0.0, 0.0, 0.0)
-        corr = np.fft.irfft2(self._spectrum * np.conj(np.fft.rfft2(image, s=(self._pad, self._pad))),
-                             s=(self._pad, self._pad))
+        corr = np.fft.irfft2(self._spectrum * query_conj, s=(self._pad, self._pad))
         corr = np.where(self._window[:, None] & self._window[None, :], corr, -np.inf)
         i, j = np.unravel_index(int(np.argmax(corr)), corr.shape)
         di, dj = int(self._offsets[i]), int(self._offsets[j])

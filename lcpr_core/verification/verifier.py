@@ -38,6 +38,7 @@ REJECT_REASONS: tuple[str, ...] = (
 _ROS_ORDER = [3, 4, 5, 0, 1, 2]  # small_gicp's (rotation, translation) tangent -> (x, y, z, roll, pitch, yaw)
 _NEIGHBOURS = 10
 _COARSE_STRIDE = 8  # every 8th point estimates the overlap of a coarse result
+_BEV_QUERY_CACHE = 24  # query BEV spectra kept per prepared cloud (~120 KiB each), then forgotten at once
 
 
 @dataclass
@@ -54,15 +55,33 @@ class PreparedCloud:
     fine: small_gicp.PointCloud | None = None  # about verify.fine_points points (or ``cloud``), for the fine stage
     fine_tree: small_gicp.KdTree | None = None
     _bev: BevMatcher | None = field(default=None, repr=False)
+    # its BEV spectra as a query, by (matcher key, yaw): its candidates' yaw guesses often repeat
+    _bev_query: dict[tuple[tuple[float, float, int], float], tuple[np.ndarray, float]] = field(
+        default_factory=dict, repr=False)
 
     def __len__(self) -> int:
         return len(self.xyz)
 
     def bev(self, config: VerifierConfig) -> BevMatcher:
         if self._bev is None:
-            self._bev = BevMatcher(self.xyz, cell=config.bev_cell, extent=config.bev_extent,
+            self._bev = BevMatcher(self.bev_xyz(config), cell=config.bev_cell, extent=config.bev_extent,
                                    max_offset=config.bev_extent / 2.0)
         return self._bev
+
+    def bev_xyz(self, config: VerifierConfig) -> np.ndarray:
+        """The points its bird's-eye views are made of: every k-th, about ``bev_points`` (all when 0)."""
+        return self.xyz[::_stride(len(self.xyz), config.bev_points)]
+
+    def locate_in(self, match: BevMatcher, yaw: float, config: VerifierConfig) -> Hypothesis:
+        """This cloud, as the query turned by ``yaw``, located in ``match``'s view (its spectrum kept for reuse)."""
+        key = (match.key, yaw)
+        spectrum = self._bev_query.get(key)
+        xyz = self.bev_xyz(config)
+        if spectrum is None:
+            if len(self._bev_query) >= _BEV_QUERY_CACHE:
+                self._bev_query.clear()
+            spectrum = self._bev_query[key] = match.query_spectrum(xyz, yaw)
+        return match.locate(xyz, yaw, spectrum=spectrum)
 
 
 @dataclass(frozen=True)
@@ -121,10 +140,14 @@ class GeometricVerifier:
             return PreparedCloud(xyz=xyz, cloud=None, tree=None, context=polar_context(xyz), normals=np.zeros_like(xyz))
         cloud = small_gicp.PointCloud(xyz)
         tree = small_gicp.KdTree(cloud, num_threads=threads)
-        small_gicp.estimate_normals_covariances(cloud, tree, num_neighbors=_NEIGHBOURS, num_threads=threads)
+        resample = len(xyz) > 1.4 * cfg.fine_points
+        if resample:  # the full cloud is only searched (the overlap): no covariances, which only GICP reads
+            small_gicp.estimate_normals(cloud, tree, num_neighbors=_NEIGHBOURS, num_threads=threads)
+        else:
+            small_gicp.estimate_normals_covariances(cloud, tree, num_neighbors=_NEIGHBOURS, num_threads=threads)
         normals = np.asarray(cloud.normals())[:, :3]
         fine, fine_tree = cloud, tree
-        if len(xyz) > 1.4 * cfg.fine_points:
+        if resample:
             fine, fine_tree = self._resampled(cloud, cfg.cloud.voxel, cfg.fine_points)
         coarse, coarse_tree = self._resampled(fine, cfg.coarse_voxel, cfg.coarse_points)
         return PreparedCloud(xyz=xyz, cloud=cloud, tree=tree, context=polar_context(xyz), normals=normals,
@@ -194,7 +217,7 @@ class GeometricVerifier:
         """The ``registrations`` best initial guesses (yaw from the polar contexts, x/y from the BEV)."""
         cfg = self.config
         bev = match.bev(cfg)
-        found = [bev.locate(query.xyz, yaw) for yaw in yaw_candidates(query.context, match.context,
+        found = [query.locate_in(bev, yaw, cfg) for yaw in yaw_candidates(query.context, match.context,
                                                                      cfg.yaw_hypotheses)]
         found.sort(key=lambda h: -h.score)
         return found[: cfg.registrations]
@@ -207,11 +230,13 @@ class GeometricVerifier:
         assert query.coarse is not None and match.coarse is not None
         r = small_gicp.align(match.coarse, query.coarse, match.coarse_tree, init_T_target_source=T0,
                              registration_type=cfg.registration, num_threads=cfg.num_threads,
-                             max_iterations=cfg.coarse_iterations, max_correspondence_distance=cfg.coarse_distance)
+                             max_iterations=cfg.coarse_iterations, max_correspondence_distance=cfg.coarse_distance,
+                             translation_epsilon=cfg.coarse_epsilon_m,
+                             rotation_epsilon=math.radians(cfg.coarse_epsilon_deg))
         T = np.asarray(r.T_target_source, np.float64)
         if not np.isfinite(T).all():
             return -1.0, T0, T0
-        return self._overlap(query, match, T, stride=_COARSE_STRIDE)[0], T, T0
+        return self._overlap(query, match, T, points=cfg.coarse_overlap_points, least_stride=_COARSE_STRIDE)[0], T, T0
 
     def _fine(self, query: PreparedCloud, match: PreparedCloud, start: np.ndarray, T0: np.ndarray) -> _Registered:
         cfg = self.config
@@ -222,29 +247,41 @@ class GeometricVerifier:
         T = np.asarray(fine.T_target_source, np.float64)
         fitness, rmse, constraint = 0.0, math.inf, 0.0
         if np.isfinite(T).all():
-            q_in_m = transform_points(query.xyz, T)
-            idx, near = _near(q_in_m, match, cfg)  # one search: the overlap and the constraint share it
-            fitness, rmse = self._overlap(query, match, T, query_side=(q_in_m, idx, near))
-            constraint = _constraint(q_in_m[near], match.normals[idx[near]])
+            fitness, rmse, constraint = self._evidence(query, match, T, cfg.overlap_points)
+            sampled = max(_stride(len(query), cfg.overlap_points), _stride(len(match), cfg.overlap_points)) > 1
+            if sampled and abs(fitness - cfg.min_fitness) < cfg.overlap_recheck:  # borderline: read every point
+                fitness, rmse, constraint = self._evidence(query, match, T, 0)
         return _Registered(T, fitness, rmse, np.asarray(fine.H, np.float64), float(fine.error), int(fine.num_inliers),
                            T0, start, constraint)
 
-    def _overlap(self, query: PreparedCloud, match: PreparedCloud, T: np.ndarray, *, stride: int = 1,
-                 query_side: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> tuple[float, float]:
+    def _evidence(self, query: PreparedCloud, match: PreparedCloud, T: np.ndarray, points: int
+                  ) -> tuple[float, float, float]:
+        """(overlap, RMSE, constraint) at ``T`` from samples of about ``points`` points (0: every point)."""
+        cfg = self.config
+        q_in_m = transform_points(query.xyz[::_stride(len(query), points)], T)
+        idx, near = _near(q_in_m, match, cfg)  # one search: the overlap and the constraint share it
+        fitness, rmse = self._overlap(query, match, T, points=points, query_side=(q_in_m, idx, near))
+        return fitness, rmse, _constraint(q_in_m[near], match.normals[idx[near]])
+
+    def _overlap(self, query: PreparedCloud, match: PreparedCloud, T: np.ndarray, *, points: int = 0,
+                 least_stride: int = 1, query_side: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+                 ) -> tuple[float, float]:
         """(overlap, RMSE) after alignment; overlap = the mean of both directions' inlier shares.
 
         A point is an inlier when its nearest neighbour in the other cloud is within
         ``inlier_distance`` and it lies within ``plane_distance`` of that neighbour's local
         plane: independent of how densely either sensor sampled the surface. RMSE is
-        the point-to-plane RMSE of the query's inliers. ``stride`` > 1 estimates it from
-        every stride-th point (for ranking the starts); ``query_side`` passes the query's
-        points in the match frame and their neighbour search when the caller has them.
+        the point-to-plane RMSE of the query's inliers. Each cloud's share is estimated from
+        an evenly spaced sample of its points (every k-th: at most about ``points``, 0 for all,
+        and k at least ``least_stride``) searched in the other's full cloud: the sample may be
+        sparse, the surfaces it is tested against may not. ``query_side`` passes the query's
+        sampled points in the match frame and their neighbour search when the caller has them.
         """
         cfg = self.config
         if query_side is None:
-            q_in_m = transform_points(query.xyz[::stride], T)
+            q_in_m = transform_points(query.xyz[::_stride(len(query), points, least_stride)], T)
             query_side = (q_in_m, *_near(q_in_m, match, cfg))
-        m_in_q = transform_points(match.xyz[::stride], np.linalg.inv(T))
+        m_in_q = transform_points(match.xyz[::_stride(len(match), points, least_stride)], np.linalg.inv(T))
         share_q, d_q = _inliers(*query_side, match, cfg)
         share_m, _ = _inliers(m_in_q, *_near(m_in_q, query, cfg), query, cfg)
         rmse = float(np.sqrt(np.mean(d_q ** 2))) if len(d_q) else math.inf
@@ -289,6 +326,11 @@ class GeometricVerifier:
         sigma2 = np.diag(cov).copy()
         bump = np.maximum(floor - sigma2, 0.0)
         return cov + np.diag(bump)
+
+
+def _stride(count: int, points: int, least: int = 1) -> int:
+    """Every k-th of ``count`` points leaves at most about ``points`` (0: all), k >= ``least``."""
+    return max(least, -(-count // points) if points > 0 else 1)
 
 
 def _near(points: np.ndarray, target: PreparedCloud, cfg: VerifierConfig) -> tuple[np.ndarray, np.ndarray]:

@@ -433,3 +433,53 @@ def test_no_far_apart_campus_pair_is_accepted(livox):
     accepted = [(q, m, round(v.fitness, 3)) for q, m, v in verdicts if v.accepted]
     assert not accepted, f"far pairs accepted (query, match, fitness): {accepted}"
     assert all(v.reason in REJECT_REASONS for _, _, v in verdicts)
+
+
+# ---------------------------------------------------------------------- cost-saving samples
+def test_the_overlap_read_from_a_sample_agrees_with_the_overlap_read_from_every_point(world, match_cloud):
+    """The sample is searched in the other's full cloud, so it estimates the same share, not a sparser one."""
+    query, truth = query_of(world, 40.0, -3.0, 2.0)
+    every = GeometricVerifier(VerifierConfig(num_threads=1, overlap_points=0))
+    sampled = GeometricVerifier(VerifierConfig(num_threads=1, overlap_points=1024))
+    q, m = (every.prepare(every.compact(c)) for c in (query, match_cloud))
+    assert min(len(q), len(m)) > 2 * 1024  # the sample really is a sample
+    full, part = every.verify_prepared(q, m), sampled.verify_prepared(q, m)
+    assert full.accepted and part.accepted, (full.reason, part.reason)
+    assert part.fitness == pytest.approx(full.fitness, abs=0.03)
+    assert part.rmse == pytest.approx(full.rmse, rel=0.1)
+    assert np.allclose(part.match_T_query, full.match_T_query)  # the registration itself reads what it did
+
+
+def test_a_query_s_bird_s_eye_views_are_reused_across_its_candidates_with_the_same_guesses(
+        verifier, world, match_cloud):
+    query, _ = query_of(world, 40.0, -3.0, 2.0)
+    q, m = (verifier.prepare(verifier.compact(c)) for c in (query, match_cloud))
+    first = verifier.hypotheses(q, m)
+    kept = len(q._bev_query)
+    assert kept == CONFIG.yaw_hypotheses
+    again = verifier.hypotheses(q, m)
+    assert len(q._bev_query) == kept and again == first
+    bev = m.bev(CONFIG)  # a fresh query spectrum gives what the kept one gave
+    assert bev.locate(q.bev_xyz(CONFIG), first[0].yaw) == first[0]
+
+
+@pytest.mark.parametrize("name", ["overlap_points", "coarse_overlap_points", "bev_points"])
+@pytest.mark.parametrize("value", [-1, 2.5, True])
+def test_a_sample_size_that_is_not_a_whole_number_of_points_is_refused(name, value):
+    with pytest.raises(VerificationError, match=rf"verify\.{name}={value!r}; accepted: an integer >= 0"):
+        VerifierConfig(**{name: value})
+
+
+def test_a_borderline_overlap_is_read_again_from_every_point_so_the_verdict_is_the_full_overlap_s(
+        world, match_cloud):
+    query, _ = query_of(world, 40.0, -3.0, 2.0)
+    every = GeometricVerifier(VerifierConfig(num_threads=1, overlap_points=0))
+    q, m = (every.prepare(every.compact(c)) for c in (query, match_cloud))
+    full = every.verify_prepared(q, m)
+    for threshold, verdict in ((full.fitness - 0.001, True), (full.fitness + 0.001, False)):
+        sampled = GeometricVerifier(VerifierConfig(num_threads=1, overlap_points=1024, min_fitness=threshold))
+        v = sampled.verify_prepared(q, m)
+        assert v.fitness == full.fitness and v.rmse == full.rmse and v.constraint == full.constraint
+        assert v.accepted is verdict, (threshold, v.reason)
+    far = GeometricVerifier(VerifierConfig(num_threads=1, overlap_points=1024, min_fitness=full.fitness - 0.2))
+    assert far.verify_prepared(q, m).fitness != full.fitness  # far from the threshold the sample decides
