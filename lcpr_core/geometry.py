@@ -68,6 +68,19 @@ def pose_from_xyz_rpy(xyz: tuple[float, ...], rpy: tuple[float, ...]) -> np.ndar
     return out
 
 
+def xyz_rpy_from_pose(pose: np.ndarray) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """Translation and roll, pitch, yaw (rad) of a 4 x 4 pose: the inverse of :func:`pose_from_xyz_rpy`
+    (pitch in [-90, 90] deg; at +-90 deg the roll and yaw split of a rotation is not unique)."""
+    r = np.asarray(pose, np.float64)[:3, :3]
+    pitch = math.asin(max(-1.0, min(1.0, -float(r[2, 0]))))
+    if abs(float(r[2, 0])) < 1.0 - 1e-12:
+        roll, yaw = math.atan2(float(r[2, 1]), float(r[2, 2])), math.atan2(float(r[1, 0]), float(r[0, 0]))
+    else:  # gimbal lock: all of the turn about z is put in yaw
+        roll, yaw = 0.0, math.atan2(-float(r[0, 1]), float(r[1, 1]))
+    x, y, z = (float(v) for v in np.asarray(pose, np.float64)[:3, 3])
+    return (x, y, z), (roll, pitch, yaw)
+
+
 def nearest_rotation(r: np.ndarray) -> np.ndarray:
     """The rotation matrix nearest ``r`` (3, 3) (SVD projection): removes round-off before a solver sees it."""
     u, _, vt = np.linalg.svd(r)

@@ -15,7 +15,6 @@ odometry of its stamps waits (``pending_s`` of header time) and is retried as od
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
 import threading
 import time
@@ -48,24 +47,14 @@ from ros_common.process import finish_and_save, node_parser, run_node
 from ros_common.qos import CANDIDATE_QOS, QOS_ADAPTED, SensorSubscription
 from ros_common.ros_params import declare
 from ros_common.stamps import NS_PER_S, StampOrder, stamp_ns
+from ros_common.static_tf import tf_message_type
 from ros_common.stats import NodeStats
 from ros_common.worker import Worker
 
 from .backend_config import BackendNodeConfig, all_leaves, describe_all, settings_from
 from .outputs import parse_candidates, row_covariance, row_pose
 
-
-def _tf_message_type() -> type | None:
-    """tf2_msgs/TFMessage, or None: the ROS 2 wheels of the ros extra carry no tf2_msgs; a sourced ROS 2 does."""
-    try:
-        module = importlib.import_module("tf2_msgs.msg")
-    except ImportError:
-        return None
-    found: type = module.TFMessage
-    return found
-
-
-TFMessage = _tf_message_type()
+TFMessage = tf_message_type()
 
 NODE_NAME = "lcpr_backend"
 MAX_WAITING = 10_000  # items queued for the worker at most (~15 min of 10 Hz odometry); older ones are dropped

@@ -45,6 +45,7 @@ class NodeConfig:
     map: MapFileConfig = field(default_factory=MapFileConfig)
     diagnostics: DiagnosticsConfig = field(default_factory=DiagnosticsConfig)
     lidar_only: bool = False  # no camera subscriptions: every frame described with all camera slots empty
+    tf_static_topic: str = "/tf_static"  # the submap mount (odometry child frame -> cloud frame) from here; "" = off
 
     def __post_init__(self) -> None:
         require(self.camera_type in CAMERA_TYPES,

@@ -8,6 +8,7 @@ frame waits in a single slot while the worker is busy). See ``lcpr_node --help``
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import threading
 import time
@@ -24,6 +25,7 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
+from lcpr_core.geometry import xyz_rpy_from_pose
 from lcpr_core.lcpr.detector import DetectorConfig, Frame, LoopDetector
 from lcpr_core.lcpr.preprocess.camera import CameraInput
 from lcpr_core.pretrained import describe_weights, threshold_text
@@ -36,6 +38,7 @@ from ros_common.process import finish_and_save, node_parser, run_node
 from ros_common.qos import CANDIDATE_QOS, QOS_ADAPTED, SensorSubscription
 from ros_common.ros_params import RuntimeParameters, declare
 from ros_common.stamps import NS_PER_S, stamp_ns
+from ros_common.static_tf import STATIC_QOS, StaticExtrinsic, tf_message_type
 from ros_common.stats import Counts, NodeStats, Window
 from ros_common.worker import Worker
 
@@ -101,6 +104,9 @@ class LcprNode(NodeStats, Node):
             self._payload.append(compressed_payload if compressed else raw_payload)
             self._subscribe(CompressedImage if compressed else Image, topic, partial(self._on_image, k))
         self._subscribe(PointCloud2, node_cfg.lidar_topic, self._on_cloud)
+        self._static_tf, self._frames = StaticExtrinsic(), {"base": "", "lidar": ""}
+        self._mount: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None  # from /tf_static
+        self._listen_tf_static(node_cfg.tf_static_topic)
         self.create_service(Trigger, "~/save_map", self._on_save_map)
         self.create_timer(RELEASE_PERIOD, self._release)
         self.create_timer(node_cfg.diagnostics.period, self._publish_diagnostics)
@@ -125,6 +131,52 @@ class LcprNode(NodeStats, Node):
         buffer = OdometryBuffer(slop=cfg.sync.slop, max_gap=cfg.sync.odom_max_gap, jump_back=cfg.sync.jump_back)
         self._subscribe(Odometry, cfg.odom_topic, partial(self._on_odom, buffer))
         return buffer, LoopMarkers(self.create_publisher(MarkerArray, "~/markers", CANDIDATE_QOS))
+
+    def _listen_tf_static(self, topic: str) -> None:
+        """Subscribe ``topic`` for the submap mount, where tf2_msgs imports (a sourced ROS 2)."""
+        if not topic:
+            return
+        tf_type = tf_message_type()
+        if tf_type is None:
+            self.get_logger().info(f"tf_static_topic {topic}: tf2_msgs is not importable (no sourced ROS 2), so the "
+                                   "submap mount is submap.lidar_xyz / lidar_rpy")
+            return
+        self.create_subscription(tf_type, topic, self._on_tf_static, STATIC_QOS)
+
+    def _on_tf_static(self, msg: Any) -> None:
+        if self._static_tf.offer(msg):
+            self._find_mount()
+
+    def _note_frame(self, which: str, frame: str) -> None:
+        if frame and frame != self._frames[which]:
+            self._frames[which] = frame
+            self._find_mount()
+
+    def _find_mount(self) -> None:
+        """Take the mount odometry child frame -> cloud frame from /tf_static once both frames are known."""
+        base, lidar = self._frames["base"], self._frames["lidar"]
+        if not base or not lidar:
+            return
+        T = self._static_tf.lookup(base, lidar)
+        if T is None:
+            return
+        mount = xyz_rpy_from_pose(T)
+        if mount == self._mount:
+            return
+        self._mount = mount
+        (x, y, z), (roll, pitch, yaw) = mount
+        self.get_logger().info(f"submap mount from {self.settings.node.tf_static_topic} {base} -> {lidar}: "
+                               f"xyz ({x:.3f}, {y:.3f}, {z:.3f}) m, rpy ({roll:.4f}, {pitch:.4f}, {yaw:.4f}) rad "
+                               "(replaces submap.lidar_xyz / lidar_rpy)")
+        self._apply(self.settings)
+
+    def _with_mount(self, settings: Settings) -> Settings:
+        """``settings`` with the /tf_static mount in place of submap.lidar_xyz / lidar_rpy, once one is known."""
+        if self._mount is None:
+            return settings
+        det = settings.detector
+        submap = dataclasses.replace(det.submap, lidar_xyz=self._mount[0], lidar_rpy=self._mount[1])
+        return dataclasses.replace(settings, detector=dataclasses.replace(det, submap=submap))
 
     def _subscribe(self, msg_type: type, topic: str, callback: Callable[[Any], None]) -> None:
         self._sensor_subscriptions.append(SensorSubscription(
@@ -157,6 +209,7 @@ class LcprNode(NodeStats, Node):
     def _on_cloud(self, msg: PointCloud2) -> None:
         self.rates.tick(self.settings.node.lidar_topic)
         ns = stamp_ns(msg.header)
+        self._note_frame("lidar", str(msg.header.frame_id))
         try:
             points, removed = cloud_points(msg)
         except InputRejected as err:
@@ -180,6 +233,7 @@ class LcprNode(NodeStats, Node):
 
     def _on_odom(self, buffer: OdometryBuffer, msg: Odometry) -> None:
         self.rates.tick(self.settings.node.odom_topic)
+        self._note_frame("base", str(msg.child_frame_id))
         try:
             offer_odometry(buffer, msg)
         except InputRejected as err:
@@ -257,6 +311,7 @@ class LcprNode(NodeStats, Node):
 
     # -- parameters, map, diagnostics -----------------------------------------------------
     def _apply(self, settings: Settings) -> None:
+        settings = self._with_mount(settings)
         self.settings = settings
         self._next_detector_config = settings.detector  # taken by the worker before its next frame
         self.sync.config = settings.node.frame_sync()

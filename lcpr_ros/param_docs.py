@@ -133,6 +133,9 @@ DOCS: dict[str, ParamDoc] = {
     "odom_topic": ParamDoc("nav_msgs/Odometry topic for poses (markers, keyframe.min_distance); empty = none"),
     "lidar_only": ParamDoc("no camera subscriptions: every frame is described with all camera slots empty, "
                            "verified and published as usual (a vehicle with a LiDAR and no surround cameras)"),
+    "tf_static_topic": ParamDoc("tf2_msgs/TFMessage topic the submap mount (submap.lidar_xyz / lidar_rpy) is read "
+                                "from: the transform from the odometry's child frame to the clouds' frame, once "
+                                "heard, replaces those parameters; needs tf2_msgs (a sourced ROS 2); empty = off"),
     # ---- synchronisation
     "sync.slop": ParamDoc("s: each camera's image nearest the cloud stamp within this is used", 0.0, 10.0,
                           dynamic=True),
