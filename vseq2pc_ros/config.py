@@ -10,7 +10,7 @@ left at this default.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -19,10 +19,12 @@ from lcpr_core.pretrained import BUNDLED, VSEQ2PC_WEIGHTS_NAMES
 from lcpr_core.vseq2pc.detector import SequenceDetectorConfig
 from lcpr_core.vseq2pc.retrieval import SearchConfig
 from lcpr_core.vseq2pc.sequence import OFFSETS, SequenceConfig
+from lcpr_core.vseq2pc.verify import SequenceVerifyConfig
 from msg_tools.frames import KITTI_TOPICS
 from ros_common.config import INPUT_QOS, DiagnosticsConfig, MapFileConfig, require, require_finite_non_negative
 
 EXTRINSICS_FORMATS = ("xyz_rpy", "matrix")
+DEFAULT_VERIFY = SequenceVerifyConfig()
 HALF_PI = math.pi / 2
 
 #: lidar_T_cam of KITTI's sensor setup, camera 0 in the Velodyne frame (optical frame: z forward, x right, y down).
@@ -68,6 +70,27 @@ class Vseq2pcMatchConfig:
     def search(self) -> SearchConfig:
         return SearchConfig(k=self.top_k, exclude_recent_s=self.exclude_recent_s,
                             prefilter=self.prefilter or None)
+
+
+@dataclass(frozen=True)
+class Vseq2pcVerifyParams:
+    enabled: bool = True  # register each query's pseudo-cloud against its candidates; loops must be verified
+    top_k: int = 10  # the best this-many candidates of a query are registered
+    min_fitness: float = DEFAULT_VERIFY.min_fitness  # share of the pseudo-cloud on the scan's surfaces
+    min_support: int = DEFAULT_VERIFY.min_support  # accepted candidates agreeing on the camera's map pose
+    max_depth: float = DEFAULT_VERIFY.pseudo.max_depth  # m: depth farther along the optical axis is left out
+    max_frames: int = DEFAULT_VERIFY.pseudo.max_frames  # camera frames stacked into one pseudo-cloud at most
+
+    def __post_init__(self) -> None:
+        try:
+            self.core()
+        except ValueError as err:
+            raise ValueError(str(err).replace("verify.", "")) from None
+
+    def core(self) -> SequenceVerifyConfig:
+        pseudo = replace(DEFAULT_VERIFY.pseudo, max_depth=self.max_depth, max_frames=self.max_frames)
+        return replace(DEFAULT_VERIFY, enabled=self.enabled, top_k=self.top_k, min_fitness=self.min_fitness,
+                       min_support=self.min_support, pseudo=pseudo)
 
 
 @dataclass(frozen=True)
@@ -172,6 +195,7 @@ class NodeConfig:
     input_qos: str = "best_available"  # ros_common.qos
     model: Vseq2pcModelConfig = field(default_factory=Vseq2pcModelConfig)
     match: Vseq2pcMatchConfig = field(default_factory=Vseq2pcMatchConfig)
+    verify: Vseq2pcVerifyParams = field(default_factory=Vseq2pcVerifyParams)
     sequence: SequenceParams = field(default_factory=SequenceParams)
     scan: FilterConfig = field(default_factory=FilterConfig)
     camera: FilterConfig = field(default_factory=FilterConfig)
@@ -194,4 +218,4 @@ class NodeConfig:
         return SequenceDetectorConfig(
             scan=self.scan.keyframes(), camera=self.camera.keyframes(), sequence=self.sequence.builder(),
             search=self.match.search(), min_probability=self.match.min_probability,
-            lidar_T_cam=tuple(self.extrinsics.lidar_T_cam().ravel().tolist()))
+            lidar_T_cam=tuple(self.extrinsics.lidar_T_cam().ravel().tolist()), verify=self.verify.core())

@@ -5,8 +5,10 @@ odometry gives becomes a map scan (thinned by ``scan.*``), or the map is loaded 
 ``map.path``. Query side: depth + label images (paired by stamp) with CameraInfo, the
 camera-to-LiDAR extrinsics and the odometry pose make one camera feature per frame;
 once the vehicle is 5/10/15 m further on, the query frame's sequence is described and
-matched against the scans older than ``match.exclude_recent_s``. Outputs: ``~/loop_closure``,
-``~/candidates`` (lcpr_node's layouts; distance = 1 - probability) and ``/diagnostics``.
+matched against the scans older than ``match.exclude_recent_s``; with ``verify.enabled`` (default) the
+sequence's depth, stacked with odometry, is registered against its ``verify.top_k`` candidate scans' clouds
+and only verified loops are published. Outputs: ``~/loop_closure``, ``~/candidates`` (lcpr_node's layouts and
+columns; distance = 1 - probability) and ``/diagnostics`` (verified / rejected candidates by reason).
 The detection itself is :class:`lcpr_core.vseq2pc.detector.SequenceDetector`; this node
 declares parameters, converts messages, pairs them with poses and calls it. Conversion,
 pairing, pose lookup and keyframe decisions run on the callback thread; features, the
@@ -46,7 +48,7 @@ from ros_common.process import finish_and_save, node_parser, run_node
 from ros_common.qos import CANDIDATE_QOS, QOS_ADAPTED, SensorSubscription
 from ros_common.ros_params import declare
 from ros_common.stamps import NS_PER_S, StampOrder, stamp_ns
-from ros_common.stats import NodeStats
+from ros_common.stats import Counts, NodeStats, Window
 from ros_common.worker import Worker
 
 from .config import ExtrinsicsConfig, NodeConfig
@@ -103,6 +105,8 @@ class Vseq2pcNode(NodeStats, Node):
         self.init_stats(log.warning, window=cfg.diagnostics.window)
         self.session_scans = 0
         self.queries = 0
+        self.verify_time = Window(cfg.diagnostics.window)  # s: verification of one camera frame's queries
+        self.verdicts = Counts()  # candidates by verdict ("accepted" or why not)
         self._closed = False
 
         self.net, files = build_net(cfg)
@@ -292,15 +296,29 @@ class Vseq2pcNode(NodeStats, Node):
         if result.unfinished:
             self.decisions.add("queries left unfinished by a time jump", result.unfinished)
         self.decisions.add("camera frames")
+        if result.frame_problem is not None:
+            self.drops.add(f"pseudo-cloud: {result.frame_problem}")
+            self.warnings(f"pseudo-cloud: {result.frame_problem}", f"camera frame {item.frame.stamp:.9f} gives no "
+                          "pseudo-cloud; the candidates of the queries it belongs to stay unverified")
+        for error in result.errors:
+            self.warnings("verification failed", f"{error}; the candidate counts as unverified, the node goes on")
+        if "verify" in result.timings:
+            self.verify_time.add(result.timings["verify"])
         if not result.queries:
             return
         for query in result.queries:
             self.queries += 1
             self.decisions.add("queries")
-            if query.loop is None:
+            if not query.candidates:
                 self.decisions.add("queries without candidates")
                 continue
+            for candidate in query.candidates:
+                if candidate.verification != "off":
+                    self.verdicts.add(candidate.verification)
             self._candidates_pub.publish(candidates_msg(query.stamp, query.query_id, query.candidates))
+            if query.loop is None:
+                self.decisions.add("queries without a verified candidate")
+                continue
             self._loop_pub.publish(loop_closure_msg(query.stamp, query.loop))
             self.loops += 1
         self.latency.add(time.monotonic() - item.arrival)
@@ -349,7 +367,8 @@ class Vseq2pcNode(NodeStats, Node):
             latency=self.latency.percentiles(50, 90, 99), model=self.model_time.percentiles(50, 90, 99),
             map_size=len(self.map), session_keyframes=self.session_scans, loops=self.loops,
             sync_pending=len(self.scan_queue) + len(self.camera_queue), worker_waiting=self.worker.waiting,
-            worker_busy=self.worker.busy,
+            worker_busy=self.worker.busy, verification=self.verdicts.snapshot(),
+            verify_time=self.verify_time.percentiles(50, 90, 99),
         )
 
     def _publish_diagnostics(self) -> None:

@@ -51,6 +51,19 @@ DOCS: dict[str, ParamDoc] = {
                                       0.0, 1.0, dynamic=True),
     "match.prefilter": ParamDoc("0 = score every scan; M = FAISS top-M scans by descriptor distance first",
                                 0, BIG, dynamic=True),
+    "verify.enabled": ParamDoc("register each query's camera pseudo-cloud (depth over the sequence, stacked with "
+                               "odometry) against its candidate scans' clouds; ~/loop_closure then publishes verified "
+                               "loops only (false: the most probable candidate, unverified)", dynamic=True),
+    "verify.top_k": ParamDoc("the best this-many candidates of each query are registered", 1, 1000, dynamic=True),
+    "verify.min_fitness": ParamDoc("share of the pseudo-cloud within reach of the scan's surfaces a verified "
+                                   "candidate needs", 0.0, 1.0, dynamic=True),
+    "verify.min_support": ParamDoc("accepted candidates (itself included) that must put the camera at one map pose "
+                                   "(1 m, 3 deg) for a candidate to count as verified; 1 = no consensus rule",
+                                   1, 1000, dynamic=True),
+    "verify.max_depth": ParamDoc("m along the optical axis: farther depth is left out of the pseudo-cloud "
+                                 "(a depth network's error grows with range)", 0.5, 1000.0, dynamic=True),
+    "verify.max_frames": ParamDoc("camera frames stacked into one pseudo-cloud at most (evenly spaced)", 1, 1000,
+                                  dynamic=True),
     "sequence.offsets": ParamDoc("m after the query frame of the sequence's later frames (ascending)"),
     "sequence.min_query_spacing": ParamDoc("m between query frames; 0 = every camera frame", 0.0, 1e6),
     "sequence.max_pending": ParamDoc("queries waiting for their last frame at most", 1, BIG),

@@ -245,7 +245,17 @@ def plot_pr(results: Sequence[MethodEval], path: str | os.PathLike[str], *, titl
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="vseq2pc_eval", description="Max F1 of (sequence, scan) pairs and Recall@N "
                                 "of loop queries on a held-out feature cache (see vseq2pc_cache).")
-    p.add_argument("--cache", required=True, help="held-out feature cache (.npz)")
+    p.add_argument("--cache", default=None, help="held-out feature cache (.npz); required unless --verify")
+    p.add_argument("--verify", nargs=2, default=None, metavar=("VALIDATION", "TEST"),
+                   help="instead of a cache: retrieval alone beside verified loops on two drive files of "
+                        "benchmarks/tools/vseq2pc_verify_data.py (the fitness threshold chosen on VALIDATION)")
+    p.add_argument("--verify-never", default=None, metavar="DRIVE",
+                   help="with --verify: a drive that never revisits its map; its published loops are counted")
+    p.add_argument("--variants", nargs="+", default=["exact", "net10"],
+                   help="with --verify: depth variants (exact, net5, net10, net20); default exact net10")
+    p.add_argument("--precision", type=float, default=0.95,
+                   help="with --verify: the validation precision the fitness threshold must keep")
+    p.add_argument("--query-step", type=int, default=3, help="with --verify: every this-many sequence is a query")
     p.add_argument("--weights-dir", default=None, help="a vseq2pc_train output folder")
     p.add_argument("--which", choices=("final", "best"), default="final",
                    help="with --weights-dir: the last epoch's weights or the best validation max F1's")
@@ -294,7 +304,17 @@ def _networks(args: argparse.Namespace) -> list[tuple[str, Vseq2pcNet]]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.verify is not None:
+        from .verify_eval import run  # registration (small_gicp) only where it is used
+        try:
+            return run(args)
+        except (ValueError, OSError) as err:
+            print(f"vseq2pc_eval: error: {err}", file=sys.stderr)
+            return 2
+    if args.cache is None:
+        parser.error("give --cache (a feature cache) or --verify VALIDATION TEST (drive files)")
     try:
         config = EvalConfig(min_frame_gap=args.min_frame_gap, negatives_per_positive=args.negatives,
                             loop_radius=args.loop_radius, seed=args.seed)

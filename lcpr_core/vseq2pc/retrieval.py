@@ -11,6 +11,9 @@ function of the L2 distance).
 Memory: descriptors live once, inside a FAISS IndexFlatL2 of N x 8 rows
 (N * 9216 bytes: 0.92 GB for 100k scans); per scan 8 + 8 + 128 bytes of id, stamp and
 pose. A search allocates at most ``chunk_scans`` x 8 x (288 + 128) floats at a time.
+Clouds (for geometric verification, :mod:`lcpr_core.vseq2pc.verify`): each scan's compact cloud,
+int16 centimetres, 6 bytes a point, at most 4096 points (24 KiB) + 16 bytes a scan at the default
+``verify.SCAN_CLOUD``; a map file of schema 1 (before clouds) loads with none.
 
 Files: one .npz (no pickle), written atomically, with a JSON header naming the
 format, schema version and the descriptor weights that made the descriptors.
@@ -28,20 +31,29 @@ import numpy as np
 import torch
 from numpy.typing import ArrayLike
 
-from ..errors import InputShapeError, InvalidValueError, MapError, MapSchemaError
+from ..errors import InputShapeError, InvalidValueError, LcprError, MapError, MapSchemaError
 from ..exclusion import matchable, matchable_prefix
 from ..map_file import check_header_fields, read_map_file, write_map_file
 from ..map_rows import MapRows, RowAccess
+from ..verification.clouds import CloudStore, compact_cloud
+from ..verification.config import CloudConfig
 from .models import DescriptorModel
 from .net import DESCRIPTOR_DIM, SLICES, Vseq2pcNet
 from .preprocess import structure_feature
 from .sequence import SequenceBatch
 
-__all__ = ["DATABASE_SCHEMA_VERSION", "ScanDatabase", "ScanMatch", "SearchConfig", "Vseq2pcMap", "head_logits"]
+__all__ = ["DATABASE_SCHEMA_VERSION", "SCAN_CLOUD", "ScanDatabase", "ScanMatch", "SearchConfig", "Vseq2pcMap",
+           "head_logits"]
 
-DATABASE_SCHEMA_VERSION = 1
+DATABASE_SCHEMA_VERSION = 2  # 2: scan clouds (cloud_ids, cloud_counts, cloud_points); 1 still loads
+_READABLE_VERSIONS = (1, 2)
 _FORMAT = "lcpr_core.vseq2pc_map"
 _NPZ_KEYS = ("descriptors", "ids", "stamps", "poses")
+_CLOUD_KEYS = ("cloud_ids", "cloud_counts", "cloud_points")
+
+#: What a scan keeps for verification: 0.4 m voxels up to 50 m (a camera's pseudo-cloud reaches 25 m ahead of
+#: frames at most 15 m on), at most 4096 points: <= 24 KiB per scan (6 bytes a point) + 16 bytes.
+SCAN_CLOUD = CloudConfig(voxel=0.4, max_points=4096, min_range=1.0, max_range=50.0)
 
 
 @dataclass(frozen=True)
@@ -75,7 +87,12 @@ class SearchConfig:
 class ScanMatch:
     """One candidate scan. probability: sigmoid(logit), the network's belief that the sequence and the
     scan show the same place; slice: the best slice (the camera looked along the scan's yaw + 45 * slice
-    degrees); pose: 4 x 4 or None; rank counts from 0."""
+    degrees); pose: 4 x 4 or None; rank counts from 0 (the retrieval rank).
+
+    Verification (:mod:`lcpr_core.vseq2pc.verify`) fills the rest: ``verified`` (the registration
+    accepted it), ``fitness`` (overlap 0..1), ``match_T_query`` (4 x 4: the query camera's pose in the
+    scan's LiDAR frame; None when not registered), ``covariance`` (6 x 6 over x, y, z, roll, pitch, yaw
+    of match_T_query) and ``verification``: "accepted", why not, or "off"."""
 
     row: int
     id: int
@@ -85,6 +102,11 @@ class ScanMatch:
     probability: float
     slice: int
     rank: int
+    verified: bool = False
+    fitness: float = 0.0
+    match_T_query: np.ndarray | None = None
+    covariance: np.ndarray | None = None
+    verification: str = "off"
 
     @property
     def relative_yaw_deg(self) -> float:
@@ -111,7 +133,7 @@ class ScanDatabase(RowAccess):
         self.weights_id = weights_id
         self._index = faiss.IndexFlatL2(DESCRIPTOR_DIM)  # N * 8 slice rows: the only copy of the descriptors
         self._rows = MapRows((4, 4), unit="scans")  # ids, stamps, poses (lcpr_core.map_rows)
-
+        self.clouds = CloudStore()  # compact scan clouds by id, for geometric verification
 
     def __repr__(self) -> str:
         return f"ScanDatabase({len(self)} scans x {SLICES} x {DESCRIPTOR_DIM}, weights {self.weights_id or '?'})"
@@ -262,9 +284,10 @@ class ScanDatabase(RowAccess):
     def save(self, path: str | os.PathLike[str]) -> None:
         """Write the database to one .npz (no pickle), atomically: on failure the old file stays."""
         header = {"format": _FORMAT, "schema_version": DATABASE_SCHEMA_VERSION, "slices": SLICES,
-                  "dim": DESCRIPTOR_DIM, "count": len(self), "weights_id": self.weights_id}
+                  "dim": DESCRIPTOR_DIM, "count": len(self), "weights_id": self.weights_id,
+                  "clouds": len(self.clouds)}
         arrays = {"descriptors": self._view(), "ids": self._rows.ids, "stamps": self._rows.stamps,
-                  "poses": self._rows.poses}
+                  "poses": self._rows.poses, **self.clouds.to_arrays()}
         write_map_file(path, header, arrays, kind="scan database")
 
     @classmethod
@@ -273,7 +296,7 @@ class ScanDatabase(RowAccess):
         come from those weights (else MapSchemaError)."""
         where = os.fspath(path)
         header, data = read_map_file(where, kind="scan database", file_format=_FORMAT,
-                                     versions=(DATABASE_SCHEMA_VERSION,), required=_NPZ_KEYS)
+                                     versions=_READABLE_VERSIONS, required=_NPZ_KEYS, optional_group=_CLOUD_KEYS)
         if header.get("slices") != SLICES or header.get("dim") != DESCRIPTOR_DIM:
             raise MapSchemaError(f"scan database {where} holds {header.get('slices')} x {header.get('dim')} "
                                  f"descriptors per scan; expected {SLICES} x {DESCRIPTOR_DIM}")
@@ -293,6 +316,11 @@ class ScanDatabase(RowAccess):
             out.add(data["descriptors"], stamps=data["stamps"], poses=data["poses"], ids=data["ids"])
         except MapError as err:
             raise MapError(f"scan database {where} is damaged: {err}") from err
+        if all(key in data for key in _CLOUD_KEYS):
+            try:
+                out.clouds = CloudStore.from_arrays(data, where=f"scan database {where}")
+            except LcprError as err:
+                raise MapError(str(err)) from err
         return out
 
 
@@ -340,15 +368,25 @@ class Vseq2pcMap:
         return len(self.db)
 
     def add_scan(self, points: np.ndarray, labels: np.ndarray, *, stamp: float, pose: np.ndarray | None = None,
-                 id: int | None = None) -> int:
-        """Describe one labelled cloud (N x >=3 LiDAR-frame points, N SemanticKITTI labels) and add it."""
-        return self.add_feature(structure_feature(points, labels), stamp=stamp, pose=pose, id=id)
+                 id: int | None = None, keep_cloud: bool = True) -> int:
+        """Describe one labelled cloud (N x >=3 LiDAR-frame points, N SemanticKITTI labels) and add it, with its
+        compact cloud (:data:`SCAN_CLOUD`) unless ``keep_cloud`` is False."""
+        cloud = compact_cloud(points, SCAN_CLOUD) if keep_cloud else None
+        return self.add_feature(structure_feature(points, labels), stamp=stamp, pose=pose, id=id, cloud=cloud)
 
     def add_feature(self, feature: np.ndarray, *, stamp: float, pose: np.ndarray | None = None,
-                    id: int | None = None) -> int:
-        """Add a scan from its 12 x 360 structure feature; returns its id."""
+                    id: int | None = None, cloud: np.ndarray | None = None) -> int:
+        """Add a scan from its 12 x 360 structure feature; returns its id. ``cloud``: its compact cloud
+        (M x 3, :func:`lcpr_core.vseq2pc.verify.scan_cloud`), kept for verification."""
         desc = self.net.slice_descriptors(np.asarray(feature, np.float32)[None])
-        return int(self.db.add(desc, stamps=stamp, poses=pose, ids=id)[0])
+        new_id = int(self.db.add(desc, stamps=stamp, poses=pose, ids=id)[0])
+        if cloud is not None:
+            self.db.clouds.add(new_id, cloud)
+        return new_id
+
+    def cloud(self, scan_id: int) -> np.ndarray | None:
+        """The scan's compact cloud (M x 3 float32, its LiDAR frame), or None when the map has none for it."""
+        return self.db.clouds.get(scan_id)
 
     def query(self, batch: SequenceBatch | np.ndarray, *, stamps: np.ndarray | None = None,
               rows: np.ndarray | None = None, config: SearchConfig | None = None) -> list[list[ScanMatch]]:

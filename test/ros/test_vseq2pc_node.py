@@ -43,6 +43,7 @@ from msg_tools.transforms import pose_to_odometry
 from ros_common.errors import ConfigError, MapLoadError
 from ros_common.harness import OutputListener, spinning, wait_until
 from vseq2pc_ros import inputs
+from vseq2pc_ros.config import NodeConfig
 from vseq2pc_ros.node import Vseq2pcNode
 from vseq2pc_ros.sync import TIME_JUMPED
 
@@ -75,9 +76,13 @@ class Drive:
 def drive() -> Drive:
     weights = default_vseq2pc_weights()
     assert weights is not None, "weights/vseq2pc_synth_*.pth are missing from this checkout"
-    synth = SyntheticDrive(SynthConfig(rig="kitti", frames=FRAMES, route="grid", image_size=(320, 96), seed=0,
-                                       camera_drop=0.0, keyframe_spacing=2.5))
-    out = Drive([], [], [], [], synth.rig.cameras[0], (Path(weights[0]), Path(weights[1])))
+    return render(SynthConfig(rig="kitti", frames=FRAMES, route="grid", image_size=(320, 96), seed=0,
+                              camera_drop=0.0, keyframe_spacing=2.5), (Path(weights[0]), Path(weights[1])))
+
+
+def render(config: SynthConfig, weights: tuple[Path, Path]) -> Drive:
+    synth = SyntheticDrive(config)
+    out = Drive([], [], [], [], synth.rig.cameras[0], weights)
     for i in range(FRAMES):
         frame = synth.frame(i)
         image = frame.cameras[0]
@@ -136,13 +141,25 @@ def labels_msg(labels: np.ndarray, stamp: float) -> Image:
     return array_to_image(labels, encoding="mono16", frame_id="camera_left", stamp=stamp, msg_type=Image)
 
 
+@pytest.fixture(scope="module")
+def exact_drive() -> Drive:
+    """The same route with exact depth to any range (projected LiDAR, stereo, RGB-D) and the weights for it."""
+    weights = default_vseq2pc_weights(depth="exact")
+    assert weights is not None, "weights/vseq2pc_synth_exact_*.pth are missing from this checkout"
+    return render(SynthConfig(rig="kitti", frames=FRAMES, route="grid", image_size=(320, 96), seed=0,
+                              camera_drop=0.0, keyframe_spacing=2.5, depth_noise=0.0, depth_range=0.0),
+                  (Path(weights[0]), Path(weights[1])))
+
+
 @pytest.fixture()
-def ros(drive: Drive, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Ros]:
-    """A node of its own for every test (fresh map and counters): each passes alone and in any order."""
+def ros(request: pytest.FixtureRequest, drive: Drive, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Ros]:
+    """A node of its own for every test (fresh map and counters): each passes alone and in any order.
+    A test parametrised indirectly with a dict of parameters starts the node with them too."""
+    extra: dict[str, object] = dict(getattr(request, "param", {}))
     context = Context()
     rclpy.init(context=context, domain_id=random.randint(1, 200))
     map_path = tmp_path_factory.mktemp("map") / "vseq2pc_map.npz"
-    node = Vseq2pcNode(context=context, parameter_overrides=params(drive, **{"map.path": str(map_path)}))
+    node = Vseq2pcNode(context=context, parameter_overrides=params(drive, **{"map.path": str(map_path), **extra}))
     driver = rclpy.create_node("vdriver", context=context)
     with spinning(context, node, driver):
         pubs = {"odom": driver.create_publisher(Odometry, TOPICS["odom_topic"], QOS),
@@ -185,6 +202,7 @@ def publish_camera_pass(ros: Ros, drive: Drive, start: float) -> None:
         assert wait_until(taken, WAIT), ros.node.health()
 
 
+@pytest.mark.parametrize("ros", [{"verify.enabled": False}], indirect=True)
 def test_camera_sequences_revisiting_the_map_are_matched_to_the_scans_at_their_poses(ros: Ros, drive: Drive) -> None:
     publish_map_pass(ros, drive)
     publish_camera_pass(ros, drive, T0 + REVISIT)
@@ -196,6 +214,7 @@ def test_camera_sequences_revisiting_the_map_are_matched_to_the_scans_at_their_p
     best = []
     for q, rows in enumerate(ros.listener.out.candidates[:queries]):
         assert len(rows) == 3 and [r["rank"] for r in rows] == [0, 1, 2]
+        assert all(r["verified"] == 0.0 and np.isnan(r["tx"]) and np.isnan(r["cov_0"]) for r in rows)
         assert {"query_stamp", "match_stamp", "distance", "probability"} <= set(rows[0])
         assert rows[0]["query_id"] == q and rows[0]["distance"] == pytest.approx(1.0 - rows[0]["probability"])
         assert all(a["distance"] <= b["distance"] for a, b in zip(rows, rows[1:], strict=False))
@@ -208,6 +227,55 @@ def test_camera_sequences_revisiting_the_map_are_matched_to_the_scans_at_their_p
     assert wait_until(lambda: ros.listener.latest_values(": detector").get("loops") == str(queries), 10)
 
 
+def test_with_exact_depth_loops_are_verified_ones_with_the_camera_pose_and_diagnostics_count_the_verdicts(
+        exact_drive: Drive, tmp_path: Path) -> None:
+    context = Context()
+    rclpy.init(context=context, domain_id=random.randint(1, 200))
+    node = Vseq2pcNode(context=context, parameter_overrides=params(exact_drive, **{
+        "map.path": str(tmp_path / "m.npz"), "model.sequence": "bundled-exact", "model.descriptor": "bundled-exact",
+        "verify.min_fitness": 0.4, "verify.min_support": 2}))  # 3 candidates a query (match.top_k)
+    driver = rclpy.create_node("vdriver", context=context)
+    with spinning(context, node, driver):
+        pubs = {"odom": driver.create_publisher(Odometry, TOPICS["odom_topic"], QOS),
+                "cloud": driver.create_publisher(PointCloud2, TOPICS["lidar_topic"], QOS),
+                "depth": driver.create_publisher(Image, TOPICS["depth_topic"], QOS),
+                "labels": driver.create_publisher(Image, TOPICS["labels_topic"], QOS),
+                "info": driver.create_publisher(CameraInfo, TOPICS["camera_info_topic"], QOS)}
+        listener = OutputListener(driver, "/vseq2pc")
+        assert wait_until(lambda: all(p.get_subscription_count() >= 1 for p in pubs.values()), 20)
+        listener.wait_for_publishers()
+        ros = Ros(context, node, driver, listener, pubs, tmp_path / "m.npz", exact_drive.info)
+        publish_map_pass(ros, exact_drive)
+        publish_camera_pass(ros, exact_drive, T0 + REVISIT)
+        xy = np.array([p[:2, 3] for p in exact_drive.poses])
+        queries = int((sequence_table(xy)[:, 0] >= 0).sum())
+        assert wait_until(lambda: node.queries == queries, WAIT), node.health()
+        assert listener.wait(lambda o: len(o.candidates) >= queries, WAIT)
+        rows = [r for batch in listener.out.candidates for r in batch]
+        loops = listener.out.loops
+        assert len(loops) >= queries - 1, (len(loops), queries)  # nearly every query: a verified loop
+        by_query = {batch[0]["query_stamp"]: batch for batch in listener.out.candidates}
+        for query_stamp, match_stamp in loops:
+            best = max((r for r in by_query[query_stamp] if r["verified"] == 1.0), key=lambda r: r["fitness"])
+            assert best["match_stamp"] == pytest.approx(match_stamp)
+        lidar_T_cam = NodeConfig().extrinsics.lidar_T_cam()
+        for r in rows:
+            if r["verified"] != 1.0:
+                continue
+            q, m = int(r["query_id"]), int(r["match_id"])
+            truth = np.linalg.inv(exact_drive.poses[m]) @ exact_drive.poses[q] @ lidar_T_cam
+            assert np.linalg.norm(truth[:3, 3] - [r["tx"], r["ty"], r["tz"]]) < 0.3
+            assert np.isfinite([r[f"cov_{i}"] for i in range(36)]).all() and r["cov_0"] > 0
+        verified = sum(r["verified"] == 1.0 for r in rows)
+
+        def counted() -> bool:
+            values = listener.latest_values(": detector")
+            return (values.get("candidates verified") == str(verified)
+                    and values.get("candidates rejected") == str(len(rows) - verified))
+        assert wait_until(counted, 10), listener.latest_values(": detector")
+
+
+@pytest.mark.parametrize("ros", [{"verify.enabled": False}], indirect=True)
 def test_a_camera_replay_that_jumps_back_in_time_starts_a_new_session_and_is_matched_again(
         ros: Ros, drive: Drive) -> None:
     publish_map_pass(ros, drive)
@@ -256,7 +324,7 @@ def test_bad_input_is_dropped_counted_warned_once_and_the_map_is_kept(ros: Ros, 
     assert ros.node.warnings.logged - logged == len(causes)  # once per cause
     values = ros.listener
     assert wait_until(lambda: values.latest_values(": inputs").get(f"dropped {inputs.CLOUD_NO_LABEL}") == "2", 10)
-    assert values.latest_values(": detector")["map size"] == str(size + 1)
+    assert wait_until(lambda: values.latest_values(": detector").get("map size") == str(size + 1), 10)
 
 
 def test_runtime_parameters_are_validated(ros: Ros) -> None:

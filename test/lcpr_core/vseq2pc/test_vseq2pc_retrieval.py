@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from lcpr_core import MapError, MapSchemaError
-from lcpr_core.vseq2pc import ScanDatabase, SearchConfig, SequenceBatch, Vseq2pcMap, Vseq2pcNet
+from lcpr_core.vseq2pc import DATABASE_SCHEMA_VERSION, ScanDatabase, SearchConfig, SequenceBatch, Vseq2pcMap, Vseq2pcNet
 
 N = 240
 
@@ -114,7 +114,7 @@ def test_a_saved_database_loads_back_identical_and_checks_its_weights(tmp_path: 
     np.testing.assert_array_equal(back.poses[:3], poses)
     assert np.isnan(back.poses[3]).all()
     with np.load(tmp_path / "map.npz", allow_pickle=False) as npz:  # no pickled objects inside
-        assert json.loads(str(npz["header"]))["schema_version"] == 1
+        assert json.loads(str(npz["header"]))["schema_version"] == DATABASE_SCHEMA_VERSION
     with pytest.raises(MapSchemaError, match="descriptor weights 'abc'"):
         ScanDatabase.load(tmp_path / "map.npz", expect_weights_id="other")
     with pytest.raises(MapError, match="does not exist"):
