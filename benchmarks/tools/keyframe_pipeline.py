@@ -9,7 +9,8 @@ median milliseconds of each stage as the Describer runs it:
 - decode: the six JPEGs to pixels (turbo: libjpeg-turbo at a reduced size on the CPU; nvjpeg: on the GPU);
 - resize + normalise: pixels to the N x 3 x H x W input, on the network's device;
 - range image: the sweep to the h x w range image (on the GPU there);
-- network: the forward pass(es) in the path ``precision: auto`` chose (named);
+- network: the forward pass(es) in the path ``precision: auto`` chose (named; with the bundled weights on the
+  CPU the six turns share the camera stem, :class:`lcpr_core.lcpr.turn_average.TurnedNetwork`);
 - post-processing: whitening and turn averaging;
 - end to end: ``Describer.describe`` on the raw frame (decode to descriptor).
 
@@ -70,7 +71,7 @@ def stages(describer: Describer, images: list[bytes], points: np.ndarray, *, rep
     """Median ms of each stage of one keyframe (see the module doc)."""
     import torch
 
-    from lcpr_core.lcpr.turn_average import average_turns, turned_batch
+    from lcpr_core.lcpr.turn_average import average_turns
 
     device = torch.device(describer.config.device)
     cams = describer.cameras
@@ -81,10 +82,9 @@ def stages(describer: Describer, images: list[bytes], points: np.ndarray, *, rep
                                             repeats=repeats)
     timed["range image"] = median_ms(lambda: describer.range_tensor(points), device=device, repeats=repeats)
     prepared = describer.prepare(images, points)
-    batch = turned_batch(prepared.images, prepared.ranges) if describer.turn_average else \
-        (prepared.images, prepared.ranges)
-    timed["network"] = median_ms(lambda: describer.backend(*batch), device=device, repeats=repeats)
-    raw = describer.backend(*batch)
+    batch = (prepared.images, prepared.ranges)
+    timed["network"] = median_ms(lambda: describer.network_outputs(*batch), device=device, repeats=repeats)
+    raw = describer.network_outputs(*batch)
 
     def post() -> np.ndarray:
         out = describer.postprocess(raw)
@@ -130,6 +130,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"\n{network} network ({cfg.image_size[0]}x{cfg.image_size[1]} images, width {cfg.width:g}"
                   f"{', six turns' if describer.turn_average else ''}) on {device}: precision {describer.path}, "
                   f"decoder {describer.cameras.decoder}; median of {args.repeats} (ms)")
+            if describer.choice.ms:  # what precision auto measured at start
+                print(f"  auto: {describer.choice.summary()}")
             for (images, points), folder, want in zip(frames, folders, expected, strict=True):
                 timed = stages(describer, images, points, repeats=args.repeats)
                 row: dict[str, Any] = {"network": network, "device": device, "keyframe": Path(folder).name,

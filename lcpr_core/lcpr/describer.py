@@ -29,7 +29,7 @@ from .preprocess.camera import CameraInput
 from .preprocess.cameras import CameraPreprocessor
 from .preprocess.range_image import points_array, range_image_tensor
 from .runtime import Backend, Choice, choose_backend
-from .turn_average import TURNS, average_turns, turn_average_in, turned_batch
+from .turn_average import TURNS, TurnedNetwork, average_turns, turn_average_in, turned_batch
 from .whitening import Whitening, whitening_in
 
 log = logging.getLogger(__name__)
@@ -161,8 +161,15 @@ class Describer:
                         "already decodes at a reduced size", self.config.decode)
         self.cameras = CameraPreprocessor(size=self.config.image_size, device=self.config.device,
                                           decoder=self.config.decode, draft=self.config.fast_decode)
+        #: the backend takes the frames and makes their six turns itself, with the camera stem computed once per
+        #: frame (TurnedNetwork: same arithmetic, fewer passes); on the CPU, for every path but int8, whose
+        #: graph is quantised for one pass
+        self.turns_in_network = (self.turn_average and torch.device(self.config.device).type == "cpu"
+                                 and self.config.precision != "int8")
+        network: LCPR | TurnedNetwork = TurnedNetwork(self.model).eval() if self.turns_in_network else self.model
         # a frame is one network pass, or one batch of the six turns: what a GPU path captures
-        self.choice: Choice = choose_backend(self.config, self.model, batch=TURNS if self.turn_average else 1)
+        rows = TURNS if self.turn_average and not self.turns_in_network else 1
+        self.choice: Choice = choose_backend(self.config, network, batch=rows)
         self.backend: Backend = self.choice.backend  # the path descriptors are computed on
         self._ranges_on_device = torch.device(self.config.device).type == "cuda"
 
@@ -219,12 +226,20 @@ class Describer:
         when the weights say so). A GPU out of memory raises :class:`~lcpr_core.errors.DeviceError`."""
         try:
             if not self.turn_average:
-                return self.postprocess(self.backend(images, ranges))
-            return average_turns(self.postprocess(self.backend(*turned_batch(images, ranges))), images.shape[0])
+                return self.postprocess(self.network_outputs(images, ranges))
+            return average_turns(self.postprocess(self.network_outputs(images, ranges)), images.shape[0])
         except torch.cuda.OutOfMemoryError as err:
             torch.cuda.empty_cache()
             raise DeviceError(f"{self.config.device} ran out of memory describing {images.shape[0]} frame(s); "
                               f"skipped ({str(err).splitlines()[0]})") from err
+
+    def network_outputs(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:
+        """B frames' model inputs -> the network's raw unit descriptors: B x 256, or with turn averaging
+        TURNS*B x 256, turn-major (as :func:`~lcpr_core.lcpr.turn_average.turned_batch`), before any
+        post-processing."""
+        if self.turn_average and not self.turns_in_network:
+            return self.backend(*turned_batch(images, ranges))
+        return self.backend(images, ranges)
 
     def postprocess(self, desc: np.ndarray) -> np.ndarray:
         """B x 256 network outputs -> what the weights file's whitening makes of them (unit descriptors)."""

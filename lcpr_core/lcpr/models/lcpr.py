@@ -106,10 +106,23 @@ class LCPR(nn.Module):
     def describe(self, images: torch.Tensor, range_image: torch.Tensor) -> LcprOutput:
         """The descriptor together with the camera and LiDAR sub-descriptors."""
         self._check_inputs(images, range_image)
+        return self.describe_from_stem(self.camera_stem(images), range_image, images.shape[1])
+
+    def camera_stem(self, images: torch.Tensor) -> torch.Tensor:
+        """B x N x 3 x H x W images -> (B*N) x C1 x H/4 x W/4: the layers that see each camera image alone
+        (conv1_i, bn1_i, max pool, layer1_i), before the first fusion with the LiDAR branch.
+
+        Exposed so that the six turns of one frame (the same images, cameras rolled) can share it:
+        :mod:`lcpr_core.lcpr.turn_average` computes it once and rolls the features instead.
+        """
         b, n = images.shape[:2]
         cam = images.reshape(b * n, *images.shape[2:]).contiguous(memory_format=torch.channels_last)
         cam = self.maxpool(self.relu(self.bn1_i(self.conv1_i(cam))))
-        cam = self.layer1_i(cam)  # (B*N) x C1 x H/4 x W/4 (C1 = 64 at width 1)
+        return self.layer1_i(cam)  # (B*N) x C1 x H/4 x W/4 (C1 = 64 at width 1)
+
+    def describe_from_stem(self, cam: torch.Tensor, range_image: torch.Tensor, n: int) -> LcprOutput:
+        """:meth:`describe` after :meth:`camera_stem`: (B*N) x C1 x H/4 x W/4 camera features of N cameras
+        per frame and B x 1 x h x w ranges -> the descriptors."""
         lid = self.conv_l(range_image.contiguous(memory_format=torch.channels_last))  # B x C1 x h x w
         stages = (
             (None, None, self.fusion1),

@@ -8,9 +8,9 @@ under a hash of everything that shapes them (:mod:`.onnx_cache`); int8 graphs ar
 the describer: a configuration is a :class:`~lcpr_core.lcpr.config.ModelConfig`.
 """
 from ...timing import cpu_model
-from .backends import Backend, OpenVinoBackend, OrtBackend, TorchBackend
+from .backends import Backend, OpenVinoBackend, OrtBackend, SplitBackend, TorchBackend
 from .choose import EXACT_COSINE, Choice, choose_backend
 from .onnx_cache import export_onnx, graph_key, onnx_path
 
-__all__ = ["Backend", "TorchBackend", "OrtBackend", "OpenVinoBackend", "choose_backend", "Choice", "EXACT_COSINE",
-           "cpu_model", "export_onnx", "graph_key", "onnx_path"]
+__all__ = ["Backend", "TorchBackend", "OrtBackend", "OpenVinoBackend", "SplitBackend", "choose_backend", "Choice",
+           "EXACT_COSINE", "cpu_model", "export_onnx", "graph_key", "onnx_path"]

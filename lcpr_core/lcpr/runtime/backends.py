@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
@@ -13,6 +15,7 @@ from .heap import fix_mmap_threshold
 
 if TYPE_CHECKING:
     from ..models import LCPR
+    from ..turn_average import TurnedNetwork
 
 
 class Backend(Protocol):
@@ -31,7 +34,7 @@ def graph_feeds(images: torch.Tensor, ranges: torch.Tensor) -> dict[str, np.ndar
 class TorchBackend:
     """The torch model in fp32, tf32 (CUDA only) or under bf16 autocast; fp32 on a GPU has TF32 off (exact)."""
 
-    def __init__(self, model: LCPR, *, device: str = "cpu", precision: str = "fp32") -> None:
+    def __init__(self, model: LCPR | TurnedNetwork, *, device: str = "cpu", precision: str = "fp32") -> None:
         from .cuda import CUDA_PRECISIONS
 
         if precision not in CUDA_PRECISIONS:
@@ -107,3 +110,24 @@ class OpenVinoBackend:
     def __call__(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:
         # a copy: the request reuses its output buffer
         return np.array(self.request.infer(graph_feeds(images, ranges))[self.output], dtype=np.float32)
+
+
+class SplitBackend:
+    """Runners that each compute a share of a frame's turns (consecutive turns, in order), run side by side.
+
+    Each part is a single-threaded runner of a :class:`~lcpr_core.lcpr.turn_average.TurnedNetwork` graph
+    restricted to its turns; their rows (turn-major) are joined in order, so the result is the whole
+    turned network's. On few cores this can beat one session with as many intra-op threads: each part
+    runs its convolutions start to end without waiting for the others (``precision: auto`` measures it).
+    """
+
+    def __init__(self, parts: Sequence[Backend], *, name: str = "onnx") -> None:
+        if not parts:
+            raise RuntimeSetupError("a split backend needs at least one part; got none")
+        self.parts = list(parts)
+        self.name, self.runtime = name, self.parts[0].runtime
+        self._pool = ThreadPoolExecutor(max_workers=len(self.parts), thread_name_prefix="lcpr-turns")
+
+    def __call__(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:
+        # each part's rows are its turns' B rows each, turn-major: in turn order they join turn-major
+        return np.concatenate(list(self._pool.map(lambda part: part(images, ranges), self.parts)))

@@ -9,11 +9,19 @@ from a CUDA graph of the describer's batch (:mod:`.cuda`), and keeps the fastest
 :data:`~.cuda.GPU_COSINE` of exact fp32, logged with the GPU's name.
 An explicit ``onnx`` or ``int8`` is checked against torch fp32 on the probe before use.
 
+The model raced may be a :class:`~lcpr_core.lcpr.turn_average.TurnedNetwork` (the describer's on the
+CPU for weights that average six turns): one frame in, its six turns' descriptors out, the camera
+stem shared by the turns. Every candidate then runs that network, and its exported graph is cached
+under a key of its own (:func:`.onnx_cache.graph_key` with its ``turns``). On two or more threads ``auto``
+also races :data:`SPLIT`: the turns shared out to as many single-threaded ONNX Runtime sessions as threads,
+run side by side, which avoids the intra-op synchronisation of small convolutions on few cores.
+
 ``config.runtime`` says what runs an exported graph: ``onnxruntime``, ``openvino``, or ``auto``.
 With ``auto``, the int8 graph is timed in both (when OpenVINO is installed) and the faster kept:
 OpenVINO's int8 convolutions were 1.8x faster than ONNX Runtime's on an Intel Xeon with AMX,
 so it matters. The exact fp32 graph runs in ONNX Runtime under ``auto``: the two measured within
-2 % of each other on both CPUs tried, not worth the start time of compiling twice.
+2 % of each other on both CPUs tried, not worth the start time of compiling twice; on the AMD EPYC
+(2 cores) OpenVINO ran the bundled six-turn graph 1.4x slower than ONNX Runtime (interleaved, same run).
 """
 from __future__ import annotations
 
@@ -29,25 +37,29 @@ import torch
 
 from ...errors import RuntimeSetupError
 from ...timing import cpu_model, median_seconds
-from .backends import Backend, OpenVinoBackend, OrtBackend, TorchBackend
+from .backends import Backend, OpenVinoBackend, OrtBackend, SplitBackend, TorchBackend
 from .cuda import CUDA_PRECISIONS, GPU_COSINE, GraphBackend, gpu_name
-from .onnx_cache import exported_graph, graph_key, onnx_path
+from .onnx_cache import exported_graph, graph_key, graph_turns, onnx_path
 
 if TYPE_CHECKING:
     from pathlib import Path
 
     from ..config import ModelConfig
     from ..models import LCPR
+    from ..turn_average import TurnedNetwork
 
 log = logging.getLogger(__name__)
 
 EXACT_COSINE = 0.99999  # what "exact" means for auto and for an exported graph
 INT8_COSINE = 0.99  # an int8 graph further than this from fp32 on the probe is refused as broken
 AUTO_CANDIDATES = ("fp32", "bf16", "onnx")
+#: auto's extra candidate for a TurnedNetwork on two or more threads: the exported graph split by turns into
+#: as many single-threaded ONNX Runtime sessions as threads (at most six), run side by side (backends.SplitBackend)
+SPLIT = "onnx-split"
 _chosen: dict[tuple[str, str, int], str] = {}  # (graph key, device, threads or batch) -> what auto chose here
 
 
-def probe_inputs(model: LCPR, batch: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+def probe_inputs(model: LCPR | TurnedNetwork, batch: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
     """A fixed, frame-like input: clamped normal images, ranges 2-80 m with 10 % no-return."""
     gen = torch.Generator().manual_seed(0)
     images, ranges = model.example_inputs(batch)
@@ -79,7 +91,7 @@ class Choice:
         return "; ".join(parts)
 
 
-def _build(name: str, config: ModelConfig, model: LCPR, *, batch: int = 1) -> Backend:
+def _build(name: str, config: ModelConfig, model: LCPR | TurnedNetwork, *, batch: int = 1) -> Backend:
     cuda = torch.device(config.device).type == "cuda"
     if name in CUDA_PRECISIONS:
         if cuda and config.cuda_graph:
@@ -101,6 +113,30 @@ def _build(name: str, config: ModelConfig, model: LCPR, *, batch: int = 1) -> Ba
     raise RuntimeSetupError(f"model.precision={name!r}; accepted: auto, fp32, bf16, onnx, int8")
 
 
+def _split_shares(config: ModelConfig, model: LCPR | TurnedNetwork) -> list[tuple[int, ...]]:
+    """The turns each single-threaded session of the SPLIT candidate takes; [] where it does not apply (not
+    a TurnedNetwork of all six turns, one thread, or OpenVINO asked for)."""
+    from ..turn_average import TURNS, TurnedNetwork
+
+    threads = config.threads or torch.get_num_threads()
+    if not isinstance(model, TurnedNetwork) or model.turns != tuple(range(TURNS)) or threads < 2 \
+            or config.runtime == "openvino":
+        return []
+    return [tuple(int(k) for k in share) for share in np.array_split(np.arange(TURNS), min(threads, TURNS))]
+
+
+def _build_split(config: ModelConfig, model: LCPR | TurnedNetwork) -> Backend:
+    """The SPLIT candidate: a graph per share of the turns, each in a one-thread ONNX Runtime session."""
+    from ..turn_average import TurnedNetwork
+
+    shares = _split_shares(config, model)
+    if not shares or not isinstance(model, TurnedNetwork):
+        raise RuntimeSetupError(f"{SPLIT} needs a TurnedNetwork of all six turns and at least two threads")
+    parts: list[Backend] = [OrtBackend(exported_graph(config, TurnedNetwork(model.model, turns=share)), threads=1)
+                            for share in shares]
+    return SplitBackend(parts, name="onnx")
+
+
 def _graph_backend(path: Path, config: ModelConfig, name: str) -> Backend:
     """An exported graph in the runtime ``config.runtime`` names (``auto`` here: ONNX Runtime)."""
     if config.runtime == "openvino":
@@ -108,7 +144,8 @@ def _graph_backend(path: Path, config: ModelConfig, name: str) -> Backend:
     return OrtBackend(path, threads=config.threads, name=name)
 
 
-def choose_backend(config: ModelConfig, model: LCPR, *, batch: int = 1, repeats: int = 3) -> Choice:
+def choose_backend(config: ModelConfig, model: LCPR | TurnedNetwork, *, batch: int = 1,
+                   repeats: int = 3) -> Choice:
     """The backend ``config.precision`` asks for (``auto``: measured here, see the module doc).
 
     ``batch``: the rows one frame makes (1, or 6 with turn averaging): what a GPU path captures.
@@ -134,12 +171,18 @@ def choose_backend(config: ModelConfig, model: LCPR, *, batch: int = 1, repeats:
         log.info("LCPR: %s path in %s, cosine %.7f to torch fp32 on the probe input", config.precision,
                  backend.runtime, cos)
         return Choice(backend)
-    memo = (graph_key(config), config.device, torch.get_num_threads())
+    memo = (graph_key(config, turns=graph_turns(model)), config.device, torch.get_num_threads())
+
+    def build(name: str) -> Backend:
+        if name == "fp32":
+            return reference
+        return _build_split(config, model) if name == SPLIT else _build(name, config, model)
+
     if memo in _chosen:  # measured once per process: a second detector or node takes the same path
-        return Choice(reference if _chosen[memo] == "fp32" else _build(_chosen[memo], config, model))
+        return Choice(build(_chosen[memo]))
     choice = Choice(reference)
-    best = _race(choice, AUTO_CANDIDATES, lambda name: reference if name == "fp32" else _build(name, config, model),
-                 images, ranges, expected, floor=EXACT_COSINE, repeats=repeats, warmup=0)
+    names = AUTO_CANDIDATES + ((SPLIT,) if _split_shares(config, model) else ())
+    best = _race(choice, names, build, images, ranges, expected, floor=EXACT_COSINE, repeats=repeats, warmup=0)
     _chosen[memo] = best or "fp32"
     log.info("LCPR: precision auto chose %s on %s (%d threads): %s", best, cpu_model(), torch.get_num_threads(),
              choice.summary())
@@ -167,10 +210,10 @@ def _race(choice: Choice, names: Sequence[str], build: Callable[[str], Backend],
     return best
 
 
-def _choose_cuda(config: ModelConfig, model: LCPR, reference: TorchBackend, *, batch: int,
+def _choose_cuda(config: ModelConfig, model: LCPR | TurnedNetwork, reference: TorchBackend, *, batch: int,
                  repeats: int = 20) -> Choice:
     """auto on a GPU: the fastest of fp32, tf32 and bf16 (CUDA graphs of ``batch``) within GPU_COSINE of fp32."""
-    memo = (graph_key(config), config.device, batch)
+    memo = (graph_key(config, turns=graph_turns(model)), config.device, batch)
     if memo in _chosen:
         return Choice(_build(_chosen[memo], config, model, batch=batch))
     images, ranges = probe_inputs(model, batch=batch)
@@ -185,7 +228,7 @@ def _choose_cuda(config: ModelConfig, model: LCPR, reference: TorchBackend, *, b
     return choice
 
 
-def _fastest_int8(config: ModelConfig, model: LCPR, images: torch.Tensor, ranges: torch.Tensor, *,
+def _fastest_int8(config: ModelConfig, model: LCPR | TurnedNetwork, images: torch.Tensor, ranges: torch.Tensor, *,
                   repeats: int) -> Backend:
     """The int8 graph in whichever of ONNX Runtime and OpenVINO runs it faster here (measured, logged).
 

@@ -26,6 +26,7 @@ from ...errors import RuntimeSetupError
 
 if TYPE_CHECKING:
     from ..models import LCPR
+    from ..turn_average import TurnedNetwork
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +77,8 @@ def gpu_name(device: str | torch.device) -> str:
 class GraphBackend:
     """A CUDA graph of one forward pass for a fixed batch, replayed; other batches run eagerly."""
 
-    def __init__(self, model: LCPR, *, device: str, precision: str, batch: int, warmup: int = 3) -> None:
+    def __init__(self, model: LCPR | TurnedNetwork, *, device: str, precision: str, batch: int,
+                 warmup: int = 3) -> None:
         from .backends import TorchBackend
 
         if precision not in CUDA_PRECISIONS:

@@ -2,7 +2,8 @@
 
 A graph is named by a hash (:func:`graph_key`) of everything that shapes it: the weights file's
 bytes (or the seed / ImageNet file of an untrained model), the architecture and input sizes, the
-graph kind (``fp32``, ``int8``) and the torch and opset versions that export it. A changed
+graph kind (``fp32``, ``int8``), whether it computes one frame's six turns itself
+(:class:`~lcpr_core.lcpr.turn_average.TurnedNetwork`) and the torch and opset versions that export it. A changed
 checkpoint therefore gets a new file; a stale one is never used. Graphs sit next to the weights
 (``<weights>.<kind>-<hash>.onnx``) when that folder is writable, else in the user cache
 (``$XDG_CACHE_HOME/lcpr_loop_closure``). Files are written atomically.
@@ -25,6 +26,7 @@ from ...errors import RuntimeSetupError
 if TYPE_CHECKING:
     from ..config import ModelConfig
     from ..models import LCPR
+    from ..turn_average import TurnedNetwork
 
 log = logging.getLogger(__name__)
 
@@ -49,8 +51,16 @@ def file_digest(path: str | os.PathLike[str]) -> str:
     return _digests[key]
 
 
-def graph_key(config: ModelConfig, kind: str = "fp32") -> str:
-    """16 hex digits naming the graph of ``config`` (resolved: sizes as the weights fix them)."""
+def graph_turns(model: LCPR | TurnedNetwork) -> tuple[int, ...]:
+    """The turns the graph of ``model`` computes per frame: () for one pass, a TurnedNetwork's turns."""
+    from ..turn_average import TurnedNetwork
+
+    return model.turns if isinstance(model, TurnedNetwork) else ()
+
+
+def graph_key(config: ModelConfig, kind: str = "fp32", *, turns: tuple[int, ...] = ()) -> str:
+    """16 hex digits naming the graph of ``config`` (resolved: sizes as the weights fix them); ``turns``: those
+    a :class:`~lcpr_core.lcpr.turn_average.TurnedNetwork` computes (one frame in, a row per turn out)."""
     if kind not in KINDS:
         raise RuntimeSetupError(f"graph kind {kind!r}; accepted: {', '.join(KINDS)}")
     preset = config.range_preset
@@ -60,6 +70,8 @@ def graph_key(config: ModelConfig, kind: str = "fp32") -> str:
     fields = {"format": FORMAT, "opset": OPSET, "torch": torch.__version__.split("+")[0], "kind": kind,
               "width": config.width, "num_cameras": config.num_cameras, "image_size": list(config.image_size),
               "range_size": [preset.height, preset.width], **source}
+    if turns:  # absent for the one-pass graph, whose names stay those of earlier versions
+        fields["turns"] = list(turns)
     return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -72,9 +84,9 @@ def _writable(folder: Path) -> bool:
     return folder.is_dir() and os.access(folder, os.W_OK)
 
 
-def onnx_path(config: ModelConfig, kind: str = "fp32") -> Path:
-    """Where the graph of ``config`` is (when it exists) or is to be written."""
-    key = graph_key(config, kind)
+def onnx_path(config: ModelConfig, kind: str = "fp32", *, turns: tuple[int, ...] = ()) -> Path:
+    """Where the graph of ``config`` is (when it exists) or is to be written (``turns``: see graph_key)."""
+    key = graph_key(config, kind, turns=turns)
     places = []
     if config.weights:
         weights = Path(config.weights)
@@ -89,7 +101,7 @@ def onnx_path(config: ModelConfig, kind: str = "fp32") -> Path:
     return places[-1]
 
 
-def export_onnx(model: LCPR, path: str | os.PathLike[str]) -> Path:
+def export_onnx(model: LCPR | TurnedNetwork, path: str | os.PathLike[str]) -> Path:
     """Export ``model`` (fp32, batch dimension dynamic) to ``path`` atomically."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -117,9 +129,9 @@ def export_onnx(model: LCPR, path: str | os.PathLike[str]) -> Path:
     return path
 
 
-def exported_graph(config: ModelConfig, model: LCPR) -> Path:
+def exported_graph(config: ModelConfig, model: LCPR | TurnedNetwork) -> Path:
     """The fp32 graph of ``config``, exported from ``model`` (on the CPU) when not cached yet."""
-    path = onnx_path(config, "fp32")
+    path = onnx_path(config, "fp32", turns=graph_turns(model))
     if not path.is_file():
         device = next(model.parameters()).device
         export_onnx(model.cpu(), path)

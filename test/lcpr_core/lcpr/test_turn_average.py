@@ -12,10 +12,19 @@ from lcpr_core.lcpr.checkpoint import save_checkpoint
 from lcpr_core.lcpr.describer import Describer, ModelConfig, build_model
 from lcpr_core.lcpr.preprocess.camera import cameras_tensor
 from lcpr_core.lcpr.preprocess.turn import turn_frame, turn_inputs
+from lcpr_core.lcpr.runtime import graph_key, onnx_path
 from lcpr_core.lcpr.training import export_weights
 from lcpr_core.lcpr.training.config import InputConfig
 from lcpr_core.lcpr.training.recipe_rules import adopt_turn_average
-from lcpr_core.lcpr.turn_average import ENTRY, TURNS, average_turns, read_turn_average, turned_batch, write_turn_average
+from lcpr_core.lcpr.turn_average import (
+    ENTRY,
+    TURNS,
+    TurnedNetwork,
+    average_turns,
+    read_turn_average,
+    turned_batch,
+    write_turn_average,
+)
 from lcpr_core.lcpr.whitening import fit_whitening, write_whitened
 
 RIG = InputConfig(num_cameras=6, image_size=(32, 64), range_size=(8, 72), width=0.125)
@@ -82,6 +91,56 @@ def test_the_describer_averages_each_turn_after_whitening_when_the_file_asks(tmp
     off = Describer(ModelConfig(weights=str(target), precision="fp32", turn_average=False))
     assert not off.turn_average and np.allclose(off.describe_tensors(images, ranges), each[0], atol=1e-6)
     assert len({plain.weights_id, off.weights_id, turned.weights_id}) == 3  # maps tell the spaces apart
+
+
+def test_the_turned_network_runs_the_camera_stem_once_per_frame_and_matches_the_batch_of_six_turns():
+    model = build_model(ModelConfig(seed=3, num_cameras=6, image_size=(32, 64), range_size=(8, 72), width=0.125))
+    images, ranges = inputs(batch=2)
+    seen: list[int] = []
+    hook = model.conv1_i.register_forward_hook(lambda module, args, out: seen.append(args[0].shape[0]))
+    with torch.inference_mode():
+        full = model(*turned_batch(images, ranges)).numpy()  # 12 x 256, turn-major
+        shared = TurnedNetwork(model)(images, ranges).numpy()
+    hook.remove()
+    assert seen == [TURNS * 2 * 6, 2 * 6]  # the stem saw 72 images for the batch, 12 for the turned network
+    assert shared.shape == full.shape == (TURNS * 2, 256)
+    np.testing.assert_allclose(shared, full, atol=1e-6, rtol=0)
+    with pytest.raises(InputShapeError, match="expected B x 6 x 3 x 32 x 64"):
+        TurnedNetwork(model)(images[:, :4], ranges)
+
+
+def test_the_exported_turned_graph_has_a_key_of_its_own_and_agrees_with_torch(tmp_path):
+    target = tmp_path / "turned.pth"
+    write_turn_average(write_net(tmp_path / "net.pth"), target, on=True)
+    exact = Describer(ModelConfig(weights=str(target), precision="fp32"))
+    graph = Describer(ModelConfig(weights=str(target), precision="onnx"))
+    assert exact.turns_in_network and graph.turns_in_network and graph.runtime == "onnxruntime"
+    config = graph.config
+    all_turns = tuple(range(TURNS))
+    assert graph_key(config, turns=all_turns) != graph_key(config) and onnx_path(config, turns=all_turns).is_file()
+    assert not onnx_path(config).is_file()  # the one-pass graph was not needed
+    images, ranges = inputs()
+    assert graph.network_outputs(images, ranges).shape == (TURNS * 2, 256)
+    np.testing.assert_allclose(graph.describe_tensors(images, ranges), exact.describe_tensors(images, ranges),
+                               atol=1e-5, rtol=0)
+
+
+def test_auto_also_races_the_turns_shared_out_to_single_threaded_sessions_which_give_the_same_rows(tmp_path):
+    from lcpr_core.lcpr.runtime import SplitBackend
+    from lcpr_core.lcpr.runtime.choose import SPLIT, _build_split
+
+    target = tmp_path / "turned.pth"
+    write_turn_average(write_net(tmp_path / "net.pth"), target, on=True)
+    auto = Describer(ModelConfig(weights=str(target), precision="auto", threads=2))
+    assert set(auto.choice.ms) | set(auto.choice.failed) == {"fp32", "bf16", "onnx", SPLIT}
+    assert auto.choice.cosines[SPLIT] >= 0.99999
+    exact = Describer(ModelConfig(weights=str(target), precision="fp32", threads=2))
+    split = _build_split(auto.config, TurnedNetwork(exact.model))  # type: ignore[arg-type]
+    assert isinstance(split, SplitBackend) and len(split.parts) == 2  # turns 0-2 and 3-5, one thread each
+    images, ranges = inputs()
+    np.testing.assert_allclose(split(images, ranges), exact.network_outputs(images, ranges), atol=1e-5, rtol=0)
+    with pytest.raises(InvalidValueError, match=r"turns=\(2, 1\); accepted: ascending distinct turns"):
+        TurnedNetwork(exact.model, turns=(2, 1))  # type: ignore[arg-type]
 
 
 def test_a_file_asking_for_turn_averaging_on_another_rig_is_refused_by_name(tmp_path):
