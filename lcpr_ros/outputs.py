@@ -19,13 +19,11 @@ import numpy as np
 from std_msgs.msg import Float64MultiArray
 
 from lcpr_core.lcpr.detector import Candidate, Result
-from msg_tools.geometry import matrix_to_quaternion, quaternion_to_matrix
-from ros_common.tables import parse_candidates, table_msg
+from msg_tools.geometry import quaternion_to_matrix
+from ros_common.tables import COVARIANCE_COLUMNS, POSE_COLUMNS, parse_candidates, pose_covariance_cells, table_msg
 
 __all__ = ["CANDIDATE_COLUMNS", "candidates_msg", "loop_closure_msg", "parse_candidates", "row_covariance", "row_pose"]
 
-POSE_COLUMNS: tuple[str, ...] = ("tx", "ty", "tz", "qx", "qy", "qz", "qw")
-COVARIANCE_COLUMNS: tuple[str, ...] = tuple(f"cov_{i}" for i in range(36))
 CANDIDATE_COLUMNS: tuple[str, ...] = (
     "query_stamp", "match_stamp", "query_id", "match_id", "distance", "rank", "degraded",
     "verified", "fitness", *POSE_COLUMNS, *COVARIANCE_COLUMNS,
@@ -33,14 +31,9 @@ CANDIDATE_COLUMNS: tuple[str, ...] = (
 
 
 def _row(c: Candidate) -> list[float]:
-    if c.match_T_query is None:
-        pose = [math.nan] * len(POSE_COLUMNS)
-    else:
-        T = np.asarray(c.match_T_query, np.float64)
-        pose = [*T[:3, 3].tolist(), *matrix_to_quaternion(T[:3, :3]).tolist()]
-    cov = [math.nan] * 36 if c.covariance is None else np.asarray(c.covariance, np.float64).reshape(36).tolist()
     return [c.query_stamp, c.match_stamp, float(c.query_id), float(c.match_id), c.distance, float(c.rank),
-            float(c.degraded), float(c.verified), float(c.fitness), *pose, *cov]
+            float(c.degraded), float(c.verified), float(c.fitness),
+            *pose_covariance_cells(c.match_T_query, c.covariance)]
 
 
 def loop_closure_msg(result: Result) -> Float64MultiArray | None:

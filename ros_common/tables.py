@@ -3,10 +3,18 @@
 names, cols, cols), so a reader finds every column by name whichever node wrote it."""
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any
 
+import numpy as np
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, MultiArrayLayout
+
+from msg_tools.geometry import matrix_to_quaternion
+
+#: match_T_query as translation + quaternion, and its 6 x 6 covariance row-major: the same names in both nodes
+POSE_COLUMNS: tuple[str, ...] = ("tx", "ty", "tz", "qx", "qy", "qz", "qw")
+COVARIANCE_COLUMNS: tuple[str, ...] = tuple(f"cov_{i}" for i in range(36))
 
 
 def table_msg(rows: Sequence[Sequence[float]], columns: Sequence[str], label: str = "candidates") -> Float64MultiArray:
@@ -20,6 +28,17 @@ def table_msg(rows: Sequence[Sequence[float]], columns: Sequence[str], label: st
         MultiArrayDimension(label=",".join(columns), size=cols, stride=cols),
     ], data_offset=0)
     return Float64MultiArray(layout=layout, data=[float(v) for row in rows for v in row])
+
+
+def pose_covariance_cells(match_T_query: np.ndarray | None, covariance: np.ndarray | None) -> list[float]:
+    """The POSE_COLUMNS and COVARIANCE_COLUMNS cells of a candidate (NaN where it has no pose or covariance)."""
+    if match_T_query is None:
+        pose = [math.nan] * len(POSE_COLUMNS)
+    else:
+        T = np.asarray(match_T_query, np.float64)
+        pose = [*T[:3, 3].tolist(), *matrix_to_quaternion(T[:3, :3]).tolist()]
+    cov = [math.nan] * 36 if covariance is None else np.asarray(covariance, np.float64).reshape(36).tolist()
+    return [*pose, *cov]
 
 
 def parse_candidates(msg: Any) -> list[dict[str, float]]:

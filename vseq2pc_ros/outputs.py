@@ -13,19 +13,13 @@ where the candidate was not registered. Rows come verified first (best fitness f
 """
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
-import numpy as np
 from std_msgs.msg import Float64MultiArray
 
 from lcpr_core.vseq2pc.retrieval import ScanMatch
-from msg_tools.geometry import matrix_to_quaternion
-from ros_common.tables import table_msg
+from ros_common.tables import COVARIANCE_COLUMNS, POSE_COLUMNS, pose_covariance_cells, table_msg
 
-#: lcpr_node's names (lcpr_ros.outputs), repeated here: the two node packages do not import each other
-POSE_COLUMNS: tuple[str, ...] = ("tx", "ty", "tz", "qx", "qy", "qz", "qw")
-COVARIANCE_COLUMNS: tuple[str, ...] = tuple(f"cov_{i}" for i in range(36))
 CANDIDATE_COLUMNS: tuple[str, ...] = (
     "query_stamp", "match_stamp", "query_id", "match_id", "distance", "rank", "probability", "logit", "yaw_deg",
     "verified", "fitness", *POSE_COLUMNS, *COVARIANCE_COLUMNS,
@@ -33,14 +27,9 @@ CANDIDATE_COLUMNS: tuple[str, ...] = (
 
 
 def _row(query_stamp: float, query_id: int, m: ScanMatch) -> list[float]:
-    if m.match_T_query is None:
-        pose = [math.nan] * len(POSE_COLUMNS)
-    else:
-        T = np.asarray(m.match_T_query, np.float64)
-        pose = [*T[:3, 3].tolist(), *matrix_to_quaternion(T[:3, :3]).tolist()]
-    cov = [math.nan] * 36 if m.covariance is None else np.asarray(m.covariance, np.float64).reshape(36).tolist()
     return [float(query_stamp), m.stamp, float(query_id), float(m.id), 1.0 - m.probability, float(m.rank),
-            m.probability, m.logit, m.relative_yaw_deg, float(m.verified), float(m.fitness), *pose, *cov]
+            m.probability, m.logit, m.relative_yaw_deg, float(m.verified), float(m.fitness),
+            *pose_covariance_cells(m.match_T_query, m.covariance)]
 
 
 def candidates_msg(query_stamp: float, query_id: int, matches: Sequence[ScanMatch]) -> Float64MultiArray:

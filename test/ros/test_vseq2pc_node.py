@@ -16,6 +16,7 @@ import signal
 import subprocess
 import sys
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -151,14 +152,11 @@ def exact_drive() -> Drive:
                   (Path(weights[0]), Path(weights[1])))
 
 
-@pytest.fixture()
-def ros(request: pytest.FixtureRequest, drive: Drive, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Ros]:
-    """A node of its own for every test (fresh map and counters): each passes alone and in any order.
-    A test parametrised indirectly with a dict of parameters starts the node with them too."""
-    extra: dict[str, object] = dict(getattr(request, "param", {}))
+@contextmanager
+def started(drive: Drive, map_path: Path, **extra: object) -> Iterator[Ros]:
+    """A node of its own (its own context and domain) with a driver publishing its inputs, spinning."""
     context = Context()
     rclpy.init(context=context, domain_id=random.randint(1, 200))
-    map_path = tmp_path_factory.mktemp("map") / "vseq2pc_map.npz"
     node = Vseq2pcNode(context=context, parameter_overrides=params(drive, **{"map.path": str(map_path), **extra}))
     driver = rclpy.create_node("vdriver", context=context)
     with spinning(context, node, driver):
@@ -171,6 +169,15 @@ def ros(request: pytest.FixtureRequest, drive: Drive, tmp_path_factory: pytest.T
         assert wait_until(lambda: all(p.get_subscription_count() >= 1 for p in pubs.values()), 20)
         listener.wait_for_publishers()
         yield Ros(context, node, driver, listener, pubs, map_path, drive.info)
+
+
+@pytest.fixture()
+def ros(request: pytest.FixtureRequest, drive: Drive, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Ros]:
+    """A node of its own for every test (fresh map and counters): each passes alone and in any order.
+    A test parametrised indirectly with a dict of parameters starts the node with them too."""
+    extra: dict[str, object] = dict(getattr(request, "param", {}))
+    with started(drive, tmp_path_factory.mktemp("map") / "vseq2pc_map.npz", **extra) as made:
+        yield made
 
 
 def publish_map_pass(ros: Ros, drive: Drive, start: float = T0) -> None:
@@ -229,22 +236,10 @@ def test_camera_sequences_revisiting_the_map_are_matched_to_the_scans_at_their_p
 
 def test_with_exact_depth_loops_are_verified_ones_with_the_camera_pose_and_diagnostics_count_the_verdicts(
         exact_drive: Drive, tmp_path: Path) -> None:
-    context = Context()
-    rclpy.init(context=context, domain_id=random.randint(1, 200))
-    node = Vseq2pcNode(context=context, parameter_overrides=params(exact_drive, **{
-        "map.path": str(tmp_path / "m.npz"), "model.sequence": "bundled-exact", "model.descriptor": "bundled-exact",
-        "verify.min_fitness": 0.4, "verify.min_support": 2}))  # 3 candidates a query (match.top_k)
-    driver = rclpy.create_node("vdriver", context=context)
-    with spinning(context, node, driver):
-        pubs = {"odom": driver.create_publisher(Odometry, TOPICS["odom_topic"], QOS),
-                "cloud": driver.create_publisher(PointCloud2, TOPICS["lidar_topic"], QOS),
-                "depth": driver.create_publisher(Image, TOPICS["depth_topic"], QOS),
-                "labels": driver.create_publisher(Image, TOPICS["labels_topic"], QOS),
-                "info": driver.create_publisher(CameraInfo, TOPICS["camera_info_topic"], QOS)}
-        listener = OutputListener(driver, "/vseq2pc")
-        assert wait_until(lambda: all(p.get_subscription_count() >= 1 for p in pubs.values()), 20)
-        listener.wait_for_publishers()
-        ros = Ros(context, node, driver, listener, pubs, tmp_path / "m.npz", exact_drive.info)
+    extra = {"model.sequence": "bundled-exact", "model.descriptor": "bundled-exact",
+             "verify.min_fitness": 0.4, "verify.min_support": 2}  # 3 candidates a query (match.top_k)
+    with started(exact_drive, tmp_path / "m.npz", **extra) as ros:
+        node, listener = ros.node, ros.listener
         publish_map_pass(ros, exact_drive)
         publish_camera_pass(ros, exact_drive, T0 + REVISIT)
         xy = np.array([p[:2, 3] for p in exact_drive.poses])
