@@ -55,7 +55,8 @@ from .geometry import (
 
 __all__ = [
     "DriftModel", "LoopConstraint", "PoseGraphConfig", "PoseGraphResult", "ROBUST_KERNELS",
-    "ate_rmse", "check_covariances", "check_poses", "drift_odometry", "lidar_to_body", "optimize_pose_graph", "plot_trajectories",
+    "ate_rmse", "check_covariances", "check_poses", "drift_odometry", "lidar_to_body", "optimize_pose_graph",
+    "plot_trajectories",
     "relative_pose_error", "rotation_angle_deg", "rotation_error_deg", "to_gtsam_covariance", "yaw_deg",
 ]
 
