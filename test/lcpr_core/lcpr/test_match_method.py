@@ -149,14 +149,17 @@ def test_a_saved_map_keeps_the_scan_contexts_of_the_raw_scans_and_a_new_detector
     assert loaded.scan_contexts is not None
     raw = np.stack([scan_context(c) for c in clouds])
     np.testing.assert_array_equal(loaded.scan_contexts.matrices(), raw)  # the raw scans', not the compact clouds'
-    assert not np.array_equal(scan_context(loaded.clouds.get(int(loaded.ids[0]))), raw[0])
+    compact = loaded.clouds.get(int(loaded.ids[0]))
+    assert compact is not None and not np.array_equal(scan_context(compact), raw[0])
     det = LoopDetector(DetectorConfig(match=MatchConfig(method="scan_context", top_k=3), verify=RETRIEVAL_ONLY),
                        describer=cast(Describer, NoPlaceDescriber()), prior_map=loaded)
+    assert det.map.scan_contexts is not None
     np.testing.assert_array_equal(det.map.scan_contexts.matrices(), raw)
     r = det.process(scan(0.0, place_cloud(2, yaw_deg=-25.0)))
     assert r.loop is not None and r.loop.match_id == 2
     det.map.save(path)  # the new keyframe's row joins them
-    assert len(DescriptorMap.load(path).scan_contexts) == 5
+    saved = DescriptorMap.load(path).scan_contexts
+    assert saved is not None and len(saved) == 5
 
 
 def test_a_map_made_without_scan_contexts_saves_none_and_bad_ones_are_refused(tmp_path):
