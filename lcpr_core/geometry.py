@@ -44,6 +44,11 @@ def transform_points(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
     return points @ pose[:3, :3].T + pose[:3, 3]
 
 
+def wrap_angle(angle: float) -> float:
+    """An angle in radians brought into [-pi, pi)."""
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+
+
 def skew(w: np.ndarray) -> np.ndarray:
     """The (3, 3) cross-product matrix of ``w`` (3,): ``skew(w) @ v = w x v``."""
     return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])

@@ -38,10 +38,17 @@ def compact_cloud(points: np.ndarray, config: CloudConfig | None = None) -> np.n
     xyz = xyz[(dist >= cfg.min_range) & (dist <= cfg.max_range)]
     if len(xyz) == 0:
         return np.zeros((0, 3), np.float32)
-    down = small_gicp.voxelgrid_sampling(xyz, cfg.voxel, num_threads=1).points()[:, :3]  # 1 thread: deterministic
-    if len(down) > cfg.max_points:
-        down = down[np.linspace(0, len(down) - 1, cfg.max_points).round().astype(np.int64)]
-    return dequantise(quantise(down))
+    return dequantise(quantise(voxel_cap(xyz, cfg.voxel, cfg.max_points)))
+
+
+def voxel_cap(xyz: np.ndarray, voxel: float, max_points: int) -> np.ndarray:
+    """N x 3 points -> the centroids of their ``voxel`` grid (float64), at most ``max_points`` of them (an
+    evenly spaced subset): a cloud's size bounded whatever the sensor."""
+    down = small_gicp.voxelgrid_sampling(np.ascontiguousarray(xyz, np.float64), voxel,
+                                         num_threads=1).points()[:, :3]  # 1 thread: deterministic
+    if len(down) > max_points:
+        down = down[np.linspace(0, len(down) - 1, max_points).round().astype(np.int64)]
+    return down
 
 
 def quantise(xyz: np.ndarray) -> np.ndarray:

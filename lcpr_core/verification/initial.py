@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..geometry import wrap_angle
 from ..points import rotate_z
 from ..scan_context import ScanContextConfig, scan_context
 
@@ -61,7 +62,7 @@ def yaw_candidates(query_sc: np.ndarray, match_sc: np.ndarray, count: int) -> li
         rest = [s for s in np.argsort(-score, kind="stable") if s not in taken]
         order = np.concatenate([order, rest]).astype(np.int64)
     step = 2.0 * math.pi / sectors
-    return [_wrap(-float(s) * step) for s in order[:count]]
+    return [wrap_angle(-float(s) * step) for s in order[:count]]
 
 
 def _shift_scores(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -142,7 +143,3 @@ def _fft_size(n: int) -> int:
         if m == 1:
             return n
         n += 1
-
-
-def _wrap(angle: float) -> float:
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi

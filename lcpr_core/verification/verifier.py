@@ -341,6 +341,12 @@ def _near(points: np.ndarray, target: PreparedCloud, cfg: VerifierConfig) -> tup
     return idx, (idx >= 0) & (d2 <= cfg.inlier_distance ** 2)
 
 
+def inlier_share(points: np.ndarray, target: PreparedCloud, config: VerifierConfig) -> float:
+    """The share of ``points`` (N x 3, in ``target``'s frame) that are inliers of ``target``: a nearest neighbour
+    within ``inlier_distance`` and its local plane within ``plane_distance``."""
+    return _inliers(points, *_near(points, target, config), target, config)[0]
+
+
 def _inliers(points: np.ndarray, idx: np.ndarray, near: np.ndarray, target: PreparedCloud, cfg: VerifierConfig
              ) -> tuple[float, np.ndarray]:
     """(share of ``points`` that are inliers of ``target``, their point-to-plane distances)."""

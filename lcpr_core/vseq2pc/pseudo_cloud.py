@@ -20,9 +20,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-import small_gicp
 
 from ..errors import InvalidValueError, VerificationError
+from ..geometry import transform_points
+from ..verification.clouds import voxel_cap
 
 __all__ = ["BAD_DEPTH", "BAD_INTRINSICS", "DEPTH_SIZE", "INPUT_REASONS", "NO_ODOMETRY", "PseudoCloudConfig",
            "accumulate", "check_pose", "frame_cloud", "reason_of"]
@@ -140,9 +141,8 @@ def frame_cloud(depth: object, K: object, lidar_T_cam: np.ndarray, *, labels: np
     z = sub[v, u].astype(np.float64)
     u, v = u * s, v * s
     cam = np.stack([(u - k[0, 2]) * z / k[0, 0], (v - k[1, 2]) * z / k[1, 1], z], axis=1)  # N x 3 optical frame
-    T = np.asarray(lidar_T_cam, np.float64)
-    pts = cam @ T[:3, :3].T + T[:3, 3]
-    return _voxel(pts, cfg.voxel, cfg.max_points)
+    pts = transform_points(cam, np.asarray(lidar_T_cam, np.float64))
+    return np.asarray(voxel_cap(pts, cfg.voxel, cfg.max_points), np.float32)
 
 
 def accumulate(frames: Sequence[tuple[np.ndarray, np.ndarray]], *, query_pose: np.ndarray,
@@ -156,13 +156,6 @@ def accumulate(frames: Sequence[tuple[np.ndarray, np.ndarray]], *, query_pose: n
     for i in picks.tolist() if len(frames) else []:
         cloud, pose = frames[i]
         T = q_inv @ check_pose(pose, f"frame {i}'s pose")
-        parts.append(np.asarray(cloud, np.float64) @ T[:3, :3].T + T[:3, 3])
+        parts.append(transform_points(np.asarray(cloud, np.float64), T))
     return np.concatenate(parts) if parts else np.zeros((0, 3))
 
-
-def _voxel(points: np.ndarray, voxel: float, cap: int) -> np.ndarray:
-    xyz = np.ascontiguousarray(points, np.float64)
-    down = small_gicp.voxelgrid_sampling(xyz, voxel, num_threads=1).points()[:, :3]  # centroids
-    if len(down) > cap:
-        down = down[np.linspace(0, len(down) - 1, cap).round().astype(np.int64)]
-    return np.asarray(down, np.float32)

@@ -20,9 +20,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import InvalidValueError, LcprError
-from ..geometry import rotation_angle_deg
+from ..geometry import rotation_angle_deg, skew, transform_points, wrap_angle
 from ..verification import ACCEPTED, CloudConfig, GeometricVerifier, PreparedCloud, Verification, VerifierConfig
 from ..verification.clouds import compact_cloud
+from ..verification.verifier import inlier_share
 from .pseudo_cloud import PseudoCloudConfig
 from .retrieval import SCAN_CLOUD, ScanMatch
 
@@ -104,7 +105,7 @@ def camera_pose(match_T_base: np.ndarray, covariance: np.ndarray, lidar_T_cam: n
     T = np.asarray(match_T_base, np.float64) @ np.asarray(lidar_T_cam, np.float64)
     lever = np.asarray(match_T_base, np.float64)[:3, :3] @ np.asarray(lidar_T_cam, np.float64)[:3, 3]
     J = np.eye(6)
-    J[:3, 3:] = -np.array([[0.0, -lever[2], lever[1]], [lever[2], 0.0, -lever[0]], [-lever[1], lever[0], 0.0]])
+    J[:3, 3:] = -skew(lever)
     cov = np.asarray(covariance, np.float64)
     return T, J @ cov @ J.T
 
@@ -170,7 +171,7 @@ class SequenceVerifier:
             v = self.verifier.verify_prepared(query, match, initial_guess=guess)
             if v.reason in (ACCEPTED, "low overlap") and v.reason != "too few points" and match.tree is not None:
                 share = query_overlap(query, match, v.match_T_query, self.verifier.config)
-                turn = abs(math.degrees(_wrap(math.atan2(v.match_T_query[1, 0], v.match_T_query[0, 0]) - yaw)))
+                turn = abs(math.degrees(wrap_angle(math.atan2(v.match_T_query[1, 0], v.match_T_query[0, 0]) - yaw)))
                 reason = v.reason
                 if v.accepted and share < cfg.min_fitness:
                     reason = LOW_QUERY_OVERLAP
@@ -226,17 +227,8 @@ def query_overlap(query: PreparedCloud, match: PreparedCloud, match_T_query: np.
     is small by nature: the camera sees 90 of its 360 degrees)."""
     if match.tree is None or len(query) == 0 or not np.isfinite(match_T_query).all():
         return 0.0
-    T = np.asarray(match_T_query, np.float64)
-    pts = query.xyz @ T[:3, :3].T + T[:3, 3]  # N x 3 in the scan frame
-    idx, d2 = match.tree.batch_nearest_neighbor_search(pts, num_threads=config.num_threads)
-    idx, d2 = np.asarray(idx, np.int64), np.asarray(d2, np.float64)
-    near = (idx >= 0) & (d2 <= config.inlier_distance ** 2)
-    plane = np.abs(np.einsum("ij,ij->i", pts[near] - match.xyz[idx[near]], match.normals[idx[near]]))
-    return float((plane <= config.plane_distance).sum()) / len(pts)
-
-
-def _wrap(angle: float) -> float:
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+    pts = transform_points(query.xyz, np.asarray(match_T_query, np.float64))  # N x 3 in the scan frame
+    return inlier_share(pts, match, config)
 
 
 def with_verdict(candidate: ScanMatch, v: Verification, lidar_T_cam: np.ndarray) -> ScanMatch:
