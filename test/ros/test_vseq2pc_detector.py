@@ -10,7 +10,6 @@ from dataclasses import dataclass, replace
 import numpy as np
 import pytest
 
-from citysim import SynthConfig, SyntheticDrive
 from lcpr_core.errors import InvalidValueError
 from lcpr_core.keyframes import KEYFRAME, NOT_MOVED, KeyframeConfig
 from lcpr_core.pretrained import default_vseq2pc_weights
@@ -24,11 +23,8 @@ from lcpr_core.vseq2pc.detector import (
 from lcpr_core.vseq2pc.retrieval import SearchConfig
 from lcpr_core.vseq2pc.sequence import sequence_table
 from lcpr_core.vseq2pc.verify import SequenceVerifyConfig
+from vseq2pc_drives import DT, FRAMES, REVISIT, short_drive
 from vseq2pc_ros.config import NodeConfig, Vseq2pcMatchConfig
-
-FRAMES = 16
-DT = 0.25
-REVISIT = 100.0
 
 
 @dataclass
@@ -44,18 +40,7 @@ def drive() -> Drive:
     weights = default_vseq2pc_weights()
     assert weights is not None, "weights/vseq2pc_synth_*.pth are missing from this checkout"
     net = Vseq2pcNet.from_files(sequence=weights[0], descriptor=weights[1])
-    synth = SyntheticDrive(SynthConfig(rig="kitti", frames=FRAMES, route="grid", image_size=(320, 96), seed=0,
-                                       camera_drop=0.0, keyframe_spacing=2.5))
-    camera = synth.rig.cameras[0]
-    scans, cameras = [], []
-    for i in range(FRAMES):
-        frame = synth.frame(i)
-        image = frame.cameras[0]
-        assert image is not None and image.depth is not None and image.labels is not None
-        xyz = np.stack([frame.cloud[n] for n in "xyz"], axis=1).astype(np.float32)
-        scans.append(LabelledScan(i * DT, xyz, frame.cloud["label"].astype(np.uint32), synth.pose(i)))
-        cameras.append(CameraFrame(REVISIT + i * DT, image.depth.astype(np.float32), image.labels.astype(np.uint16),
-                                   camera.K, synth.pose(i)))
+    _, scans, cameras = short_drive()
     lidar_T_cam = tuple(NodeConfig().extrinsics.lidar_T_cam().ravel().tolist())
     return Drive(scans, cameras, lidar_T_cam, net)
 

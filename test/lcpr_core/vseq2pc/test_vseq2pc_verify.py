@@ -12,7 +12,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from citysim import SynthConfig, SyntheticDrive
 from lcpr_core.errors import InvalidValueError, VerificationError
 from lcpr_core.geometry import rotation_angle_deg
 from lcpr_core.map_file import write_map_file
@@ -40,10 +39,8 @@ from lcpr_core.vseq2pc.verify import (
     support_counts,
 )
 from lcpr_core.vseq2pc.verify_eval import Accepted, QueryOutcome, choose, sweep
+from vseq2pc_drives import FRAMES, short_drive
 
-FRAMES = 16
-DT = 0.25
-REVISIT = 100.0
 #: 3 candidates a query here (the defaults ask 4 that agree, and a fitness chosen on 600-frame drives)
 SHORT_DRIVE_VERIFY = SequenceVerifyConfig(min_fitness=0.4, min_support=2)
 K = np.array([[200.0, 0.0, 160.0], [0.0, 200.0, 48.0], [0.0, 0.0, 1.0]])
@@ -63,18 +60,8 @@ def drive() -> Drive:
     weights = default_vseq2pc_weights()
     assert weights is not None, "weights/vseq2pc_synth_*.pth are missing from this checkout"
     net = Vseq2pcNet.from_files(sequence=weights[0], descriptor=weights[1])
-    synth = SyntheticDrive(SynthConfig(rig="kitti", frames=FRAMES, route="grid", image_size=(320, 96), seed=0,
-                                       camera_drop=0.0, keyframe_spacing=2.5, depth_noise=0.0, depth_range=0.0))
+    synth, scans, cameras = short_drive(depth_noise=0.0, depth_range=0.0)
     camera = synth.rig.cameras[0]
-    scans, cameras = [], []
-    for i in range(FRAMES):
-        frame = synth.frame(i)
-        image = frame.cameras[0]
-        assert image is not None and image.depth is not None and image.labels is not None
-        xyz = np.stack([frame.cloud[n] for n in "xyz"], axis=1).astype(np.float32)
-        scans.append(LabelledScan(i * DT, xyz, frame.cloud["label"].astype(np.uint32), synth.pose(i)))
-        cameras.append(CameraFrame(REVISIT + i * DT, image.depth.astype(np.float32), image.labels.astype(np.uint16),
-                                   camera.K, synth.pose(i)))
     lidar_T_cam = np.linalg.inv(synth.rig.lidar.base_T_lidar) @ camera.base_T_cam
     return Drive(scans, cameras, lidar_T_cam, net)
 
