@@ -225,9 +225,8 @@ class Describer:
         """Batched model inputs -> B x 256 float32 unit descriptors (whitened and averaged over the turns
         when the weights say so). A GPU out of memory raises :class:`~lcpr_core.errors.DeviceError`."""
         try:
-            if not self.turn_average:
-                return self.postprocess(self.network_outputs(images, ranges))
-            return average_turns(self.postprocess(self.network_outputs(images, ranges)), images.shape[0])
+            out = self.postprocess(self.network_outputs(images, ranges))
+            return average_turns(out, images.shape[0]) if self.turn_average else out
         except torch.cuda.OutOfMemoryError as err:
             torch.cuda.empty_cache()
             raise DeviceError(f"{self.config.device} ran out of memory describing {images.shape[0]} frame(s); "
