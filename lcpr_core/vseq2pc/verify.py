@@ -169,7 +169,7 @@ class SequenceVerifier:
             guess = match.bev(self.verifier.config).locate(query.xyz, yaw).matrix() if match.tree is not None \
                 else np.eye(4)
             v = self.verifier.verify_prepared(query, match, initial_guess=guess)
-            if v.reason in (ACCEPTED, "low overlap") and v.reason != "too few points" and match.tree is not None:
+            if v.reason in (ACCEPTED, "low overlap") and match.tree is not None:
                 share = query_overlap(query, match, v.match_T_query, self.verifier.config)
                 turn = abs(math.degrees(wrap_angle(math.atan2(v.match_T_query[1, 0], v.match_T_query[0, 0]) - yaw)))
                 reason = v.reason
