@@ -40,7 +40,12 @@ and is attached to the graph node nearest in time to each stamp, within ``loops.
 s: the odometry between the stamp and its node is composed into the constraint (and its covariance
 moved accordingly), so attaching costs no accuracy. Loop factors carry their covariance (``None`` ->
 ``loops.default_sigmas``) inside a robust kernel (``loops.robust``: huber by default, convex, so a
-long-drift loop still pulls the graph all the way; cauchy for a harder cut-off).
+long-drift loop still pulls the graph all the way; cauchy for a harder cut-off). ``loops.covariance_scale``
+multiplies every loop covariance (1 by default: a detector whose covariances are known to be too tight
+or too loose). ``loops.min_spacing_m`` (0 = off, the default) skips a loop whose both ends lie within that
+much travel (along the odometry, between graph nodes) of an accepted loop's ends, counted as redundant:
+a place closed again and again then costs one iSAM2 update, not hundreds. Neither helped the validation
+city (benchmarks/studies/backend_loop_redundancy.py), so both are off.
 
 Consistency check (before a loop enters the graph): a chi-square test of the loop against the
 current estimate. The residual ``r = Log(measured^-1 * X_match^-1 X_query)`` is weighed by
@@ -203,6 +208,8 @@ class LoopPolicy:
     attach_tolerance: float = 2.5  # s: the graph node nearest to a loop stamp must be this close
     gate: float = 0.999  # chi-square probability of the consistency check (6 dof); 1 = no check
     iterations: int = 3  # extra iSAM2 updates after a loop at most (relinearise and converge)
+    min_spacing_m: float = 0.0  # m of travel: a loop whose both ends lie this close to an accepted loop's is skipped
+    covariance_scale: float = 1.0  # every loop covariance (given or default) is multiplied by this
 
     def __post_init__(self) -> None:
         _require(self.robust in ROBUST_KERNELS,
@@ -214,7 +221,9 @@ class LoopPolicy:
                  f"LoopPolicy.default_sigmas={sig!r}; expected 6 finite numbers > 0: x, y, z (m), roll, pitch, "
                  "yaw (deg)")
         object.__setattr__(self, "default_sigmas", tuple(float(v) for v in sig))
-        _finite_non_negative(self, "stamp_tolerance", "attach_tolerance")
+        _finite_non_negative(self, "stamp_tolerance", "attach_tolerance", "min_spacing_m")
+        _require(_is_real(self.covariance_scale) and math.isfinite(self.covariance_scale) and self.covariance_scale > 0,
+                 f"LoopPolicy.covariance_scale={self.covariance_scale!r}; expected a finite number > 0")
         _require(_is_real(self.gate) and 0 < self.gate <= 1,
                  f"LoopPolicy.gate={self.gate!r}; expected a probability in (0, 1] (1 = no check)")
         _require(isinstance(self.iterations, int) and not isinstance(self.iterations, bool)
@@ -273,6 +282,7 @@ class BackendStats:
     refused: dict[str, int]  # inputs refused (BackendError), by reason
     last_loop_s: float | None  # seconds the last accepted loop took (check + iSAM2 updates)
     last_chi2: float | None  # the consistency statistic of the last loop checked
+    loops_redundant: int = 0  # skipped: both ends within loops.min_spacing_m of an accepted loop's
 
 
 # ============================================================================ the back end
@@ -306,6 +316,8 @@ class PoseGraphBackend:
         self._step_cov = GrowableArray(np.float64, (6, 6))  # ROS-order covariance of each node step
         self._loops: list[_Loop] = []
         self._rejected = 0
+        self._redundant = 0
+        self._travel: list[float] = []  # m along the odometry at each node
         self._refused: Counter[str] = Counter()
         self._last_loop_s: float | None = None
         self._last_chi2: float | None = None
@@ -360,6 +372,10 @@ class PoseGraphBackend:
         if child == parent:
             self._refuse(LOOP_SAME_NODE, f"query_stamp {q!r} and match_stamp {m!r} attach to the same graph node "
                                          f"(stamp {self._node_stamps[child]!r}); a loop needs two places")
+        if self._is_redundant(parent, child):
+            self._redundant += 1
+            return False
+        cov = cov * self.config.loops.covariance_scale
         tic = time.perf_counter()
         ext = self.config.base_T_lidar
         body = lidar_to_body(rel, ext)  # base(match)_T_base(query)
@@ -418,7 +434,8 @@ class PoseGraphBackend:
     def stats(self) -> BackendStats:
         return BackendStats(odometry=len(self._stamps), nodes=len(self._node_index),
                             loops_accepted=len(self._loops), loops_rejected=self._rejected,
-                            refused=dict(self._refused), last_loop_s=self._last_loop_s, last_chi2=self._last_chi2)
+                            refused=dict(self._refused), last_loop_s=self._last_loop_s, last_chi2=self._last_chi2,
+                            loops_redundant=self._redundant)
 
     @property
     def loops(self) -> list[tuple[float, float, float]]:
@@ -429,7 +446,7 @@ class PoseGraphBackend:
     def save(self, path: str | os.PathLike[str]) -> None:
         """Write the graph as .npz (atomically; no pickled objects): odometry, nodes, factors, estimates."""
         k = len(self._node_index)
-        counters = {"rejected": self._rejected, "refused": dict(self._refused)}
+        counters = {"rejected": self._rejected, "redundant": self._redundant, "refused": dict(self._refused)}
         arrays: dict[str, Any] = {
             "schema": np.array(GRAPH_SCHEMA), "version": np.array(GRAPH_VERSION, np.int64),
             "base_T_lidar": np.array(self.config.base_T_lidar),
@@ -485,6 +502,7 @@ class PoseGraphBackend:
         self._node_index.append(row)
         self._node_stamps.append(float(self._stamps.view()[row]))
         self._cum.extend(np.zeros((1, 6, 6)))
+        self._travel.append(0.0)
         self._refresh()
 
     def _add_node(self, row: int, *, step_cov: np.ndarray | None = None, initial: np.ndarray | None = None) -> None:
@@ -505,6 +523,7 @@ class PoseGraphBackend:
         self._node_stamps.append(float(self._stamps.view()[row]))
         self._step_cov.extend(cov[None])
         self._cum.extend((self._cum.view()[-1] + _to_world(gtsam_cov, odom[row]))[None])
+        self._travel.append(self._travel[-1] + float(np.linalg.norm(step[:3, 3])))
         self._refresh()
 
     def _converge(self, node: int, before: np.ndarray) -> None:
@@ -557,6 +576,15 @@ class PoseGraphBackend:
 
     def _node_odom(self, node: int) -> np.ndarray:
         return self._odom.view()[self._node_index[node]]
+
+    def _is_redundant(self, parent: int, child: int) -> bool:
+        """Whether an accepted loop joins places within ``loops.min_spacing_m`` of travel of both ends."""
+        spacing = self.config.loops.min_spacing_m
+        if spacing <= 0 or not self._loops:
+            return False
+        tp, tc = self._travel[parent], self._travel[child]
+        return any(abs(self._travel[lp.parent] - tp) < spacing and abs(self._travel[lp.child] - tc) < spacing
+                   for lp in self._loops)
 
     # -- internals: the consistency check ----------------------------------------------------
     def _chi2(self, parent: int, child: int, measured: np.ndarray, gtsam_cov: np.ndarray) -> float:
@@ -722,6 +750,7 @@ class PoseGraphBackend:
         try:
             counters = json.loads(str(data["counters"]))
             rejected, refused = int(counters["rejected"]), {str(a): int(b) for a, b in counters["refused"].items()}
+            redundant = int(counters.get("redundant", 0))
         except (KeyError, ValueError, TypeError, AttributeError) as err:
             raise bad(f"counters cannot be read ({err})") from err
         gt = self._gtsam
@@ -744,7 +773,7 @@ class PoseGraphBackend:
         self._isam.update(graph, values)
         for _ in range(max(self.config.loops.iterations, 1)):
             self._isam.update()
-        self._rejected, self._refused = rejected, Counter(refused)
+        self._rejected, self._redundant, self._refused = rejected, redundant, Counter(refused)
         self._refresh()
 
 

@@ -122,6 +122,11 @@ DOCS: dict[str, ParamDoc] = {
     "loops.attach_tolerance": ParamDoc("s: the graph node nearest to a loop stamp must be this close", 0.0, 3600.0),
     "loops.gate": ParamDoc("chi-square probability of the consistency check (6 dof); 1 = no check", 1e-6, 1.0),
     "loops.iterations": ParamDoc("extra iSAM2 updates after a loop that moved the graph, at most", 0, 100),
+    "loops.min_spacing_m": ParamDoc("m of travel: a loop whose both ends lie within this of an accepted loop's ends "
+                                    "is skipped as redundant (fewer iSAM2 updates where a place is closed again and "
+                                    "again); 0 = take every loop", 0.0, 1e6),
+    "loops.covariance_scale": ParamDoc("every loop covariance (given or default) is multiplied by this: a detector "
+                                       "whose covariances are too tight (> 1) or too loose (< 1)", 1e-6, 1e6),
 }
 
 YAML_HEADER = """lcpr_backend parameters (node name lcpr_backend) with their defaults, from

@@ -301,6 +301,7 @@ class BackendNode(NodeStats, Node):
         values = {
             "odometry messages": stats.odometry, "graph nodes": stats.nodes,
             "loops accepted": stats.loops_accepted, "loops rejected": stats.loops_rejected,
+            "loops skipped as redundant": stats.loops_redundant,
             "loops waiting for odometry": len(self._pending),
             "inputs refused": refused_total,
             **{f"refused {reason}": n for reason, n in sorted(stats.refused.items())},

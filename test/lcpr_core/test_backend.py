@@ -111,6 +111,38 @@ def test_without_the_check_a_robust_kernel_still_limits_what_a_wrong_loop_costs(
     assert ate_rmse(g.trajectory()[1], truth) < good + 1.0
 
 
+def test_a_loop_that_repeats_an_accepted_ones_places_is_skipped_counted_and_saved(tmp_path: Path) -> None:
+    stamps, truth, drifted, per_lap = drive(laps=2)
+
+    def closed(spacing: float) -> tuple[PoseGraphBackend, list[bool]]:
+        g = fed(stamps, drifted, BackendConfig(loops=LoopPolicy(min_spacing_m=spacing)))
+        taken = [g.add_loop(stamps[q], stamps[m], np.linalg.inv(truth[m]) @ truth[q], LOOP_COV)
+                 for q, m in ((per_lap, 0), (per_lap + 4, 4), (per_lap + per_lap // 2, per_lap // 2))]
+        return g, taken
+
+    g, taken = closed(5.0)  # the second loop: 2 m after the first at both ends
+    assert taken == [True, False, True]
+    stats = g.stats()
+    assert (stats.loops_accepted, stats.loops_rejected, stats.loops_redundant) == (2, 0, 1)
+    assert closed(1.0)[1] == [True, True, True]  # 2 m apart is not within 1 m
+    assert closed(0.0)[1] == [True, True, True]  # 0: every loop
+    g.save(tmp_path / "graph.npz")
+    assert PoseGraphBackend.load(tmp_path / "graph.npz", g.config).stats().loops_redundant == 1
+
+
+def test_covariance_scale_multiplies_every_loop_covariance_the_graph_takes(tmp_path: Path) -> None:
+    stamps, truth, drifted, _ = drive()
+    q = len(truth) - 1
+    saved = []
+    for scale in (1.0, 4.0):
+        g = fed(stamps, drifted, BackendConfig(loops=LoopPolicy(covariance_scale=scale)))
+        assert g.add_loop(stamps[q], stamps[0], np.linalg.inv(truth[0]) @ truth[q], LOOP_COV)
+        g.save(tmp_path / f"graph{scale:g}.npz")
+        with np.load(tmp_path / f"graph{scale:g}.npz") as npz:
+            saved.append(npz["loop_covariance"][0])
+    np.testing.assert_allclose(saved[1], 4.0 * saved[0], rtol=1e-9)
+
+
 def test_a_loop_between_message_stamps_is_attached_exactly_through_the_odometry() -> None:
     stamps, truth, _, _ = drive()
     g = fed(stamps, truth)  # perfect odometry: a true loop must fit it exactly wherever it is attached
@@ -397,6 +429,8 @@ def test_a_loop_stamp_inside_an_odometry_gap_was_never_seen() -> None:
     (lambda: LoopPolicy(gate=1.5), r"gate=1\.5; expected a probability in \(0, 1\]"),
     (lambda: LoopPolicy(default_sigmas=(0.1, 0.1)), r"default_sigmas=\(0\.1, 0\.1\); expected 6 finite numbers"),
     (lambda: LoopPolicy(iterations=-1), r"iterations=-1"),
+    (lambda: LoopPolicy(min_spacing_m=-1.0), r"LoopPolicy\.min_spacing_m=-1\.0; expected a finite number >= 0"),
+    (lambda: LoopPolicy(covariance_scale=0.0), r"covariance_scale=0\.0; expected a finite number > 0"),
     (lambda: KeyframeRule(distance=-1.0), r"KeyframeRule\.distance=-1\.0; expected a finite number >= 0"),
     (lambda: OdometryNoise(translation_frac=0.0), r"translation_frac=0\.0"),
     (lambda: BackendConfig(base_T_lidar=np.eye(3)), r"base_T_lidar of shape \(3, 3\)"),
