@@ -34,6 +34,7 @@ setup(
         "rosbags>=0.10",
         "small_gicp>=1.0",  # registration for geometric verification
         "opencv-python-headless>=4.8",  # Bayer demosaicing and YUV -> RGB of camera-native encodings
+        "simplejpeg>=1.6",  # scaled JPEG decoding (libjpeg-turbo), the CPU camera path; OpenCV decodes where absent
         "onnxruntime>=1.17",  # the exported network (model.precision onnx / int8 / auto)
         "onnx>=1.15",  # int8 quantisation (onnxruntime.quantization) reads and writes graphs with it
         "openvino>=2024.0",  # the faster int8 runtime on the Xeons measured (model.runtime auto / openvino)

@@ -210,8 +210,11 @@ class Describer:
                 strict: bool = False) -> Prepared:
         """Preprocess one frame; a camera whose image is unusable is left empty (as a missing one) and named
         in ``failed`` with the reason, unless ``strict``."""
-        cams, failed = self.cameras(images, strict=strict)
-        return Prepared(cams.unsqueeze(0), self.range_tensor(points)[None, None], failed)
+        # on the CPU the range image joins the camera images in the decode pool (after them)
+        finish = self.cameras.start(images, strict=strict, beside=functools.partial(self.range_tensor, points))
+        cams, failed, ranges = finish()
+        assert ranges is not None
+        return Prepared(cams.unsqueeze(0), ranges[None, None], failed)
 
     def range_tensor(self, points: np.ndarray) -> torch.Tensor:
         """N x >=3 points -> h x w range image on the model's device (computed there on a GPU)."""

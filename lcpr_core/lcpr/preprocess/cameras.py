@@ -3,9 +3,14 @@
 Three decoders (``ModelConfig.decode``):
 
 - ``pil``: the released pipeline (PIL decode, PIL bilinear resize): :func:`.camera.camera_tensor`.
-- ``turbo``: JPEGs decoded at a reduced size by libjpeg-turbo (:mod:`.decode`), two images at a
-  time (the decoder releases the GIL), then resized together by torch's antialiased bilinear
-  filter (the filter PIL's bilinear resize applies) on uint8 pixels and normalised in one pass.
+- ``turbo``: JPEGs decoded at a reduced size by libjpeg-turbo (:mod:`.decode`), in two pool
+  threads (the decoders and torch release the GIL). On the CPU, above :data:`SMALL_RESIZE` output
+  values (the released 256 x 704 input), each image is resized by torch's antialiased bilinear
+  filter (the filter PIL's bilinear resize applies) on uint8 pixels and normalised straight into
+  its slot of the output by the pool thread that decoded it, so both cores stay busy and each
+  image is still in cache; the frame's range image follows in the pool (:meth:`CameraPreprocessor.start`).
+  Smaller inputs (the bundled 64 x 192) are resized in one batch on one thread after the decodes.
+  For a GPU the decoded pixels are uploaded as uint8 and resized there.
 - ``nvjpeg``: on a CUDA device, JPEGs uploaded as bytes and decoded by nvJPEG
   (``torchvision.io.decode_jpeg(..., device="cuda")``, all six in one batch), resized and
   normalised there; the pixels never come back to the CPU.
@@ -17,9 +22,11 @@ zero, as a missing camera does; :meth:`CameraPreprocessor.__call__` says which a
 """
 from __future__ import annotations
 
+import ctypes
 import logging
+import time
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from typing import Any
 
@@ -34,18 +41,39 @@ from .decode import is_jpeg, jpeg_size, rgb_array
 log = logging.getLogger(__name__)
 
 DECODERS = ("auto", "pil", "turbo", "nvjpeg")
-#: CPU resizes with at most this many output values run on one thread: a parallel region costs more than it
-#: saves on such small tensors, and on a loaded machine it waits for a descheduled thread (the bundled
-#: 6 x 3 x 64 x 192 input: median 48 ms with 2 threads against 1.1 ms with one, AMD EPYC, load 7)
+#: CPU resizes with at most this many output values run in one batch on one thread: a parallel region costs
+#: more than it saves on such small tensors, and on a loaded machine it waits for a descheduled thread (the
+#: bundled 6 x 3 x 64 x 192 input: median 48 ms with 2 threads against 1.1 ms with one, AMD EPYC, load 7);
+#: larger inputs are resized image by image in the pool threads that decoded them
 SMALL_RESIZE = 1 << 20
+#: what :meth:`CameraPreprocessor.start` returns: call it for (N x 3 x H x W, {slot: why it was left out},
+#: what ``beside`` returned or None)
+Finish = Callable[[], "tuple[torch.Tensor, dict[int, str], torch.Tensor | None]"]
 _POOL: ThreadPoolExecutor | None = None
 
 
 def _pool() -> ThreadPoolExecutor:
     global _POOL
     if _POOL is None:
-        _POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix="lcpr-decode")
+        _POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix="lcpr-decode", initializer=_one_omp_thread)
     return _POOL
+
+
+def _one_omp_thread() -> None:
+    """Pool-thread start-up: this thread's torch ops run on one OpenMP thread.
+
+    Two pool threads, one image each, already fill two cores; a team per op would only contend.
+    OpenMP keeps the team size per thread, so the caller's and every other thread's settings stay as
+    they are (``torch.set_num_threads`` would also change the size new threads start with). Where
+    torch's OpenMP symbols cannot be found (another parallel backend) the ops keep torch's default.
+    """
+    torch.get_num_threads()  # torch's own per-thread set-up runs now, so it does not undo the line below later
+    try:
+        setter = getattr(ctypes.CDLL(None), "omp_set_num_threads", None)
+    except (OSError, TypeError):  # no handle on the process's own symbols (not Linux or macOS)
+        setter = None
+    if setter is not None:
+        setter(1)
 
 
 def nvjpeg_decoder() -> tuple[Callable[..., Any] | None, str]:
@@ -97,6 +125,12 @@ def _stack(pixels: list[torch.Tensor]) -> torch.Tensor:
     return torch.stack(pixels)
 
 
+def _raise_first(failed: dict[int, str], strict: bool) -> None:
+    if failed and strict:
+        k = min(failed)
+        raise InputShapeError(f"camera {k}: {failed[k]}")
+
+
 class CameraPreprocessor:
     """N camera images -> (N x 3 x H x W float32 on ``device``, {slot: why its image was left out})."""
 
@@ -118,19 +152,88 @@ class CameraPreprocessor:
         self._bias = (-mean / std).view(1, 3, 1, 1).to(self.device)
         #: images nvJPEG refused and the CPU decoded instead (counted, warned once)
         self.nvjpeg_fallbacks = 0
+        #: when a list, the CPU paths append (stage, thread CPU seconds): each decode, each resize (benchmarks)
+        self.profile: list[tuple[str, float]] | None = None
 
     def __call__(self, images: Sequence[CameraInput | None], *, strict: bool = False
                  ) -> tuple[torch.Tensor, dict[int, str]]:
         """``strict``: raise on the first unusable image instead of leaving its slot zero."""
+        out, failed, _ = self.start(images, strict=strict)()
+        return out, failed
+
+    def start(self, images: Sequence[CameraInput | None], *, strict: bool = False,
+              beside: Callable[[], torch.Tensor] | None = None) -> Finish:
+        """Begin preprocessing ``images`` (and run ``beside``, the frame's range image); the returned function
+        waits for the result: :meth:`__call__`'s and what ``beside`` returned.
+
+        On the CPU with ``turbo`` at a size above :data:`SMALL_RESIZE` the images go to the pool one by one
+        and ``beside`` after them, so the two pool threads keep both cores busy to the end; the other paths
+        finish here.
+        """
         if not images:
             raise InputShapeError("no camera images given; expected one per camera (6 for nuScenes)")
+        if self.decoder == "turbo" and self.device.type == "cpu" and not self._small(len(images)):
+            return self._start_fused(images, strict=strict, beside=beside)
         if self.decoder == "pil":
-            return self._pil(images, strict=strict)
-        pixels, failed = self.decode(images)
-        if failed and strict:
-            k = min(failed)
-            raise InputShapeError(f"camera {k}: {failed[k]}")
-        return self.assemble(pixels, len(images)), failed
+            out, failed = self._pil(images, strict=strict)
+        else:
+            pixels, failed = self.decode(images)
+            _raise_first(failed, strict)
+            out = self.assemble(pixels, len(images))
+        done = out, failed, None if beside is None else beside()
+        return lambda: done
+
+    def _small(self, count: int) -> bool:
+        """Whether ``count`` images at this size are under :data:`SMALL_RESIZE`: decoded in the pool, then resized
+        in one batch on one thread (six tiny per-image resizes cost more in dispatch than they share out)."""
+        return count * 3 * self.size[0] * self.size[1] <= SMALL_RESIZE
+
+    def _start_fused(self, images: Sequence[CameraInput | None], *, strict: bool,
+                     beside: Callable[[], torch.Tensor] | None) -> Finish:
+        """Each image decoded, resized and normalised into its slot of one N x 3 x H x W tensor by a pool thread."""
+        out = torch.empty(len(images), 3, *self.size)  # N x 3 x H x W; slots without an image are zeroed below
+        slots = [k for k, img in enumerate(images) if img is not None]
+        jobs: dict[int, Future[str | None]] = {}
+        extra: Future[torch.Tensor] | None = None
+        if len(slots) > 1:
+            pool = _pool()
+            jobs = {k: pool.submit(self._fill, images[k], out[k]) for k in slots}
+            extra = None if beside is None else pool.submit(beside)
+
+        def finish() -> tuple[torch.Tensor, dict[int, str], torch.Tensor | None]:
+            failed: dict[int, str] = {}
+            for k in slots:
+                why = jobs[k].result() if jobs else self._fill(images[k], out[k])
+                if why is not None:
+                    failed[k] = why
+            for k in range(len(images)):
+                if k in failed or images[k] is None:
+                    out[k].zero_()
+            _raise_first(failed, strict)
+            if extra is not None:
+                return out, failed, extra.result()
+            return out, failed, None if beside is None else beside()
+
+        return finish
+
+    def _fill(self, image: CameraInput | None, slot: torch.Tensor) -> str | None:
+        """One image -> its 3 x H x W slot (decoded, resized, normalised); why it cannot be used, else None."""
+        assert image is not None
+        profile = self.profile
+        t0 = time.thread_time() if profile is not None else 0.0
+        try:
+            arr = rgb_array(image, self.size)  # h x w x 3 uint8
+        except InputShapeError as err:
+            return str(err)
+        t1 = time.thread_time() if profile is not None else 0.0
+        pixels = torch.from_numpy(arr).permute(2, 0, 1).unsqueeze(0)  # 1 x 3 x h x w, a channels-last view
+        if tuple(pixels.shape[-2:]) != self.size:  # torch's fast uint8 path, rounded as PIL's resize
+            pixels = F.interpolate(pixels, size=self.size, mode="bilinear", antialias=True, align_corners=False)
+        slot.copy_(pixels[0])
+        slot.mul_(self._scale[0]).add_(self._bias[0])
+        if profile is not None:
+            profile += [("decode", t1 - t0), ("resize + normalise", time.thread_time() - t1)]
+        return None
 
     def decode(self, images: Sequence[CameraInput | None]) -> tuple[dict[int, torch.Tensor], dict[int, str]]:
         """The decoding stage: slot -> 3 x h x w uint8 pixels (on the GPU after nvJPEG, else CPU views of
@@ -152,6 +255,14 @@ class CameraPreprocessor:
 
     def assemble(self, pixels: dict[int, torch.Tensor], count: int) -> torch.Tensor:
         """The resize-and-normalise stage: decoded slots -> ``count`` x 3 x H x W on the device, absent slots 0."""
+        if self.profile is not None:
+            t0 = time.thread_time()
+            out = self._assemble(pixels, count)
+            self.profile.append(("resize + normalise", time.thread_time() - t0))
+            return out
+        return self._assemble(pixels, count)
+
+    def _assemble(self, pixels: dict[int, torch.Tensor], count: int) -> torch.Tensor:
         groups: dict[tuple[Any, ...], list[int]] = {}  # one resize per image size and place
         for k in sorted(pixels):
             groups.setdefault((pixels[k].device, *pixels[k].shape), []).append(k)
@@ -163,10 +274,15 @@ class CameraPreprocessor:
         return out
 
     def _rgb(self, image: CameraInput) -> np.ndarray | InputShapeError:
+        profile = self.profile
+        t0 = time.thread_time() if profile is not None else 0.0
         try:
             return rgb_array(image, self.size)
         except InputShapeError as err:
             return err
+        finally:
+            if profile is not None:
+                profile.append(("decode", time.thread_time() - t0))
 
     def _resize_normalise(self, batch: torch.Tensor) -> torch.Tensor:
         """B x 3 x h x w uint8 -> B x 3 x H x W float32 on the device: antialiased bilinear (PIL's filter),
