@@ -1,7 +1,8 @@
 """Cost of verifying one keyframe's candidates (the issue's "10 candidates <= 150 ms p50, 2 cores").
 
     python benchmarks/tools/verify_cost.py [--queries 30] [--candidates 10] [--frames 160] [--max-points N]
-                                           [--set overlap_points=0 --set bev_points=0 ...]
+                                           [--workers 2] [--set num_threads=2 ...]
+                                           [--save VERDICTS.json] [--compare VERDICTS.json]
 
 A synthetic nuScenes-rig drive (city seed 3, 32-beam LiDAR, compact clouds capped at ``--max-points``).
 For each revisiting keyframe, the ``--candidates`` earlier keyframes *nearest in position*
@@ -9,18 +10,31 @@ For each revisiting keyframe, the ``--candidates`` earlier keyframes *nearest in
 near candidates are the ones that reach the fine stage. Per keyframe the time covers
 preparing the query cloud and verifying every candidate; the candidates' clouds are
 prepared beforehand (the node caches 64 of them), and ``uncached`` adds preparing them too.
+``--workers N`` also verifies the cached candidates over N threads (:meth:`GeometricVerifier.verify_all`),
+right after the same keyframe one by one (a fair comparison on a busy machine); every verdict of either is
+compared with the uncached pass's (they must be the same).
 ``--set NAME=VALUE`` overrides a numeric :class:`~lcpr_core.verification.VerifierConfig` field (to
-compare settings back to back). Prints medians and p90 on this CPU, wall time and the CPU time of the
-verifying thread (less sensitive to other jobs on a shared machine).
+compare settings back to back). Prints medians and p90 on this CPU: wall time and the process's CPU time
+(all its threads; less sensitive to other jobs on a shared machine than the wall time).
+
+``--save FILE`` writes every verdict (decision, reason, fitness, pose); ``--compare FILE`` checks this
+run's verdicts against such a file, candidate for candidate (e.g. before and after a change to the
+verifier), prints what differs and exits with status 1 when a decision or a reason differs or a pose
+moved more than 1 mm / 0.01 deg.
 """
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+POSE_TOLERANCE_M = 1e-3  # --compare: a pose that moved more than this (or the angle below) is a difference
+POSE_TOLERANCE_DEG = 1e-2
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -30,16 +44,23 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--candidates", type=int, default=10)
     p.add_argument("--repeats", type=int, default=3, help="passes over the queries (the first one warms up)")
     p.add_argument("--max-points", type=int, default=None, help="compact cloud cap (default: CloudConfig's)")
+    p.add_argument("--workers", type=int, default=1, help="threads verifying the cached candidates (default 1)")
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                    help="override a numeric VerifierConfig field, e.g. overlap_points=0 (repeatable)")
+    p.add_argument("--save", type=Path, default=None, help="write every verdict to this JSON file")
+    p.add_argument("--compare", type=Path, default=None, help="compare the verdicts with a --save file")
     args = p.parse_args(argv)
+    if args.workers < 1:
+        raise SystemExit(f"--workers {args.workers}; accepted: an integer >= 1")
 
+    from concurrent.futures import ThreadPoolExecutor
     from dataclasses import replace
 
     from tqdm import tqdm
 
+    from lcpr_core.atomic import write_atomic
     from lcpr_core.timing import cpu_model
-    from lcpr_core.verification import GeometricVerifier, VerifierConfig
+    from lcpr_core.verification import GeometricVerifier, Verification, VerifierConfig
     from lcpr_offline.verification_pairs import SyntheticLidar, synthetic_pairs
 
     seq = SyntheticLidar("nuscenes", 3, args.frames)
@@ -60,27 +81,83 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"--frames {args.frames} gives {len(cases)} revisiting keyframes and --repeats "
                          f"{args.repeats}; accepted: a drive with revisits (the default 160 frames) and >= 2 passes")
     prepared = {i: verifier.prepare(compact[i]) for c in cases for i in c[1]}
-    cached, cached_cpu, uncached, accepted = [], [], [], []
-    for _ in tqdm(range(args.repeats), desc="passes"):
-        for q, candidates in cases:
-            tic, cpu = time.perf_counter(), time.thread_time()
-            query = verifier.prepare(compact[q])
-            verdicts = [verifier.verify_prepared(query, prepared[m]) for m in candidates]
-            cached.append(time.perf_counter() - tic)
-            cached_cpu.append(time.thread_time() - cpu)
-            accepted.append(sum(v.accepted for v in verdicts))
-            tic = time.perf_counter()
-            query = verifier.prepare(compact[q])
-            for m in candidates:
-                verifier.verify_prepared(query, verifier.prepare(compact[m]))
-            uncached.append(time.perf_counter() - tic)
+    timed: dict[str, tuple[list[float], list[float]]] = {"one by one": ([], [])}  # name: (wall, CPU) per keyframe
+    if args.workers > 1:
+        timed[f"over {args.workers} threads"] = ([], [])
+    uncached, accepted = [], []
+    verdicts: dict[tuple[int, int], Verification] = {}
+    mismatches: list[str] = []
+    pool = ThreadPoolExecutor(args.workers) if args.workers > 1 else None
+    try:
+        for _ in tqdm(range(args.repeats), desc="passes"):
+            for q, candidates in cases:
+                found: dict[str, list[Verification]] = {}
+                for name, (wall, cpu_time) in timed.items():  # back to back on the same keyframe
+                    tic, cpu = time.perf_counter(), time.process_time()
+                    query = verifier.prepare(compact[q])
+                    found[name] = verifier.verify_all(query, [prepared[m] for m in candidates],
+                                                      pool=None if name == "one by one" else pool)
+                    wall.append(time.perf_counter() - tic)
+                    cpu_time.append(time.process_time() - cpu)
+                accepted.append(sum(v.accepted for v in found["one by one"]))
+                tic = time.perf_counter()
+                query = verifier.prepare(compact[q])
+                for k, m in enumerate(candidates):
+                    alone = verifier.verify_prepared(query, verifier.prepare(compact[m]))
+                    for name, vs in found.items():
+                        mismatches += _differences(f"{q}-{m} ({name} vs uncached)", _record(vs[k]), _record(alone))
+                    verdicts[q, m] = alone
+                uncached.append(time.perf_counter() - tic)
+    finally:
+        if pool is not None:
+            pool.shutdown()
     skip = len(cases)  # the warm-up pass
     ms = lambda xs: f"p50 {1e3 * np.median(xs[skip:]):.1f} ms, p90 {1e3 * np.percentile(xs[skip:], 90):.1f} ms"  # noqa: E731
     print(f"CPU: {cpu_model()}, verifier threads {verifier.config.num_threads}; {len(cases)} keyframes x "
           f"{args.candidates} candidates (accepted per keyframe: median {np.median(accepted):.0f})")
-    print(f"  verification per keyframe, candidate clouds cached: {ms(cached)} (CPU time {ms(cached_cpu)})")
-    print(f"  verification per keyframe, nothing cached:          {ms(uncached)}")
-    return 0
+    for name, (wall, cpu_time) in timed.items():
+        print(f"  verification per keyframe, candidate clouds cached, {name}: {ms(wall)} (CPU time {ms(cpu_time)})")
+    print(f"  verification per keyframe, nothing cached, one by one: {ms(uncached)}")
+    records = {f"{q}-{m}": _record(v) for (q, m), v in verdicts.items()}
+    if args.save is not None:
+        write_atomic(args.save, lambda path: path.write_text(json.dumps(records, indent=1) + "\n"))
+        print(f"  verdicts written to {args.save}")
+    if args.compare is not None:
+        reference = json.loads(args.compare.read_text())
+        if set(reference) != set(records):
+            mismatches.append(f"pairs differ from {args.compare}: {len(set(reference) ^ set(records))} "
+                              "not in both (run with the same --frames/--queries/--candidates)")
+        for key in sorted(set(reference) & set(records)):
+            mismatches += _differences(f"{key} (vs {args.compare})", reference[key], records[key])
+    print(f"  verdicts compared: {len(mismatches)} differences")
+    for line in mismatches[:20]:
+        print("    " + line)
+    return 1 if mismatches else 0
+
+
+def _record(v: Any) -> dict[str, Any]:
+    """What --save keeps of a Verification: decision, reason, fitness and the 4 x 4 pose."""
+    return {"accepted": bool(v.accepted), "reason": v.reason, "fitness": float(v.fitness),
+            "match_T_query": np.asarray(v.match_T_query, np.float64).tolist()}
+
+
+def _differences(name: str, old: dict[str, Any], new: dict[str, Any]) -> list[str]:
+    """What differs between two verdict records (empty when the same verdict and pose)."""
+    from lcpr_core.geometry import rotation_angle_deg
+
+    out = []
+    if (old["accepted"], old["reason"]) != (new["accepted"], new["reason"]):
+        out.append(f"{name}: {old['reason']} -> {new['reason']} (fitness {old['fitness']:.4f} -> "
+                   f"{new['fitness']:.4f})")
+    a, b = np.asarray(old["match_T_query"]), np.asarray(new["match_T_query"])
+    if np.isfinite(a).all() and np.isfinite(b).all():
+        delta = np.linalg.inv(a) @ b
+        moved_m, moved_deg = float(np.linalg.norm(delta[:3, 3])), float(rotation_angle_deg(delta[:3, :3]))
+        if moved_m > POSE_TOLERANCE_M or moved_deg > POSE_TOLERANCE_DEG:
+            out.append(f"{name}: pose moved {moved_m:.4f} m, {moved_deg:.4f} deg")
+    elif np.isfinite(a).all() != np.isfinite(b).all():
+        out.append(f"{name}: pose finite {np.isfinite(a).all()} -> {np.isfinite(b).all()}")
+    return out
 
 
 def _setting(item: str) -> tuple[str, int | float]:

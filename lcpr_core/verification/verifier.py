@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
+from concurrent.futures import Executor
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -189,7 +191,9 @@ class GeometricVerifier:
         else:
             starts = self.starts(query, match)
         coarse = []  # (overlap at the coarse pose, T, T0)
-        for T0 in starts:
+        for k, T0 in enumerate(starts):
+            if any(np.array_equal(T0, earlier) for earlier in starts[:k]):  # e.g. a zero yaw's start is identity
+                continue  # registration is deterministic: the same start gives the same result
             coarse.append(self._coarse(query, match, T0))
             if coarse[-1][0] >= cfg.coarse_accept:  # clearly the place: the other starts cannot do better
                 break
@@ -201,6 +205,14 @@ class GeometricVerifier:
         best = self._fine(query, match, coarse[0][1], coarse[0][2])
         verdict = self._judge(best)
         return replace(verdict, coarse_fitness=early, seconds=time.perf_counter() - tic)
+
+    def verify_all(self, query: PreparedCloud, matches: Sequence[PreparedCloud], *,
+                   pool: Executor | None = None) -> list[Verification]:
+        """:meth:`verify_prepared` of ``query`` against each of ``matches``, in their order; over ``pool``'s
+        threads when given (each pair is independent: the same verdicts as one by one)."""
+        if pool is None or len(matches) < 2:
+            return [self.verify_prepared(query, m) for m in matches]
+        return list(pool.map(lambda m: self.verify_prepared(query, m), matches))
 
     def starts(self, query: PreparedCloud, match: PreparedCloud) -> list[np.ndarray]:
         """Initial guesses: the best BEV hypotheses, the best yaw with no offset, and identity.
