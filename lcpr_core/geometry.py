@@ -28,6 +28,16 @@ def invert(pose: np.ndarray) -> np.ndarray:
     return out
 
 
+def is_rigid(pose: np.ndarray, *, atol: float = 1e-3) -> bool:
+    """Whether ``pose`` is a finite 4 x 4 rigid transform: an orthonormal right-handed rotation, last row 0 0 0 1."""
+    T = np.asarray(pose)
+    if T.shape != (4, 4) or not np.issubdtype(T.dtype, np.number) or not np.isfinite(T).all():
+        return False
+    R = T[:3, :3].astype(np.float64)
+    return bool(np.abs(R.T @ R - np.eye(3)).max() < atol and np.linalg.det(R) > 0
+                and np.allclose(T[3], (0.0, 0.0, 0.0, 1.0)))
+
+
 def relative(a_T_x: np.ndarray, a_T_y: np.ndarray) -> np.ndarray:
     """``x_T_y = inv(a_T_x) @ a_T_y``: pose ``y`` seen from pose ``x`` (both given in frame ``a``)."""
     return invert(a_T_x) @ np.asarray(a_T_y, np.float64)

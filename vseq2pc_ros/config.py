@@ -16,6 +16,7 @@ import numpy as np
 
 from lcpr_core.keyframes import KeyframeConfig
 from lcpr_core.pretrained import BUNDLED, VSEQ2PC_WEIGHTS_NAMES
+from lcpr_core.vseq2pc.consistency import ConsistencyConfig
 from lcpr_core.vseq2pc.detector import SequenceDetectorConfig
 from lcpr_core.vseq2pc.retrieval import SearchConfig
 from lcpr_core.vseq2pc.sequence import OFFSETS, SequenceConfig
@@ -80,6 +81,10 @@ class Vseq2pcVerifyParams:
     min_support: int = DEFAULT_VERIFY.min_support  # accepted candidates agreeing on the camera's map pose
     max_depth: float = DEFAULT_VERIFY.pseudo.max_depth  # m: depth farther along the optical axis is left out
     max_frames: int = DEFAULT_VERIFY.pseudo.max_frames  # camera frames stacked into one pseudo-cloud at most
+    consistency: int = DEFAULT_VERIFY.consistency.count  # queries whose verified camera poses must agree (1 = off)
+    consistency_m: float = DEFAULT_VERIFY.consistency.max_m  # m: an earlier pose moved on by odometry vs this one
+    consistency_deg: float = DEFAULT_VERIFY.consistency.max_deg  # deg: the same for the rotation
+    consistency_spacing: float = DEFAULT_VERIFY.consistency.spacing_m  # m of odometry travel between those queries
 
     def __post_init__(self) -> None:
         try:
@@ -89,8 +94,10 @@ class Vseq2pcVerifyParams:
 
     def core(self) -> SequenceVerifyConfig:
         pseudo = replace(DEFAULT_VERIFY.pseudo, max_depth=self.max_depth, max_frames=self.max_frames)
+        gate = ConsistencyConfig(count=self.consistency, max_m=self.consistency_m, max_deg=self.consistency_deg,
+                                 spacing_m=self.consistency_spacing)
         return replace(DEFAULT_VERIFY, enabled=self.enabled, top_k=self.top_k, min_fitness=self.min_fitness,
-                       min_support=self.min_support, pseudo=pseudo)
+                       min_support=self.min_support, pseudo=pseudo, consistency=gate)
 
 
 @dataclass(frozen=True)

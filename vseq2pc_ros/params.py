@@ -64,6 +64,14 @@ DOCS: dict[str, ParamDoc] = {
                                  "(a depth network's error grows with range)", 0.5, 1000.0, dynamic=True),
     "verify.max_frames": ParamDoc("camera frames stacked into one pseudo-cloud at most (evenly spaced)", 1, 1000,
                                   dynamic=True),
+    "verify.consistency": ParamDoc("queries (this one included) that must verify and agree on the camera's map pose "
+                                   "through odometry before a loop is published; 1 = no temporal gate", 1, 16,
+                                   dynamic=True),
+    "verify.consistency_m": ParamDoc("m: how far an earlier query's verified camera pose, moved on by odometry, may "
+                                     "land from this query's", 0.01, 100.0, dynamic=True),
+    "verify.consistency_deg": ParamDoc("deg: the same for the rotation", 0.01, 180.0, dynamic=True),
+    "verify.consistency_spacing": ParamDoc("m of odometry travel between the queries of the chain at least "
+                                           "(0 = consecutive queries)", 0.0, 1000.0, dynamic=True),
     "sequence.offsets": ParamDoc("m after the query frame of the sequence's later frames (ascending)"),
     "sequence.min_query_spacing": ParamDoc("m between query frames; 0 = every camera frame", 0.0, 1e6),
     "sequence.max_pending": ParamDoc("queries waiting for their last frame at most", 1, BIG),

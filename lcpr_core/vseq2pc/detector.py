@@ -18,7 +18,9 @@ Sequences: :class:`~lcpr_core.vseq2pc.sequence.SequenceBuilder` (the query frame
 Verification (``verify.enabled``, on by default; :mod:`lcpr_core.vseq2pc.verify`): every scan keeps a compact
 cloud; each camera frame keeps its depth back-projected (:func:`~lcpr_core.vseq2pc.pseudo_cloud.frame_cloud`);
 a completed query stacks its frames (the query frame to the last member) with odometry into a pseudo-cloud and
-registers it against its best ``verify.top_k`` candidates. ``SequenceQuery.loop`` is then the verified candidate
+registers it against its best ``verify.top_k`` candidates; a verified candidate stays verified only when the
+earlier queries confirm its camera pose (``verify.consistency``, :mod:`lcpr_core.vseq2pc.consistency`).
+``SequenceQuery.loop`` is then the verified candidate
 with the best fitness (None when none passed); candidates come verified first (best fitness first). A frame whose
 depth, intrinsics or pose cannot give a cloud leaves its queries' candidates unverified with the reason
 (:data:`~lcpr_core.vseq2pc.pseudo_cloud.INPUT_REASONS`); nothing is raised.
@@ -167,6 +169,7 @@ class SequenceDetector:
             result.unfinished = self.builder.pending
             self.builder.reset()
             self._clouds.clear()
+            self.verifier.restart()
             self._session = frame.session
         if self.builder.config != self.config.sequence:  # settings changed at run time
             result.unfinished += self.builder.pending
@@ -198,6 +201,7 @@ class SequenceDetector:
             kept = [m for m in found if m.probability >= min_p]
             if verify:
                 kept = self._verify(batch, q, kept, result.errors)
+                kept = self.verifier.confirm(batch.poses[q, 0], kept, lidar_T_cam=self.config.extrinsics())
             result.queries.append(SequenceQuery(int(batch.query_indices[q]), float(batch.query_stamps[q]), kept,
                                                 verification=verify))
         if verify:

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InvalidValueError, VerificationError
-from ..geometry import transform_points
+from ..geometry import is_rigid, transform_points
 from ..verification.clouds import voxel_cap
 
 __all__ = ["BAD_DEPTH", "BAD_INTRINSICS", "DEPTH_SIZE", "INPUT_REASONS", "NO_ODOMETRY", "PseudoCloudConfig",
@@ -86,9 +86,7 @@ def check_pose(pose: object, what: str = "pose") -> np.ndarray:
     if T.shape != (4, 4):
         raise _refused(NO_ODOMETRY, f"{what} has shape {T.shape}; a 4 x 4 world_T_base is needed "
                                                  "(a position alone has no orientation)")
-    R = T[:3, :3]
-    if (not np.isfinite(T).all() or not np.allclose(R.T @ R, np.eye(3), atol=1e-3) or np.linalg.det(R) <= 0
-            or not np.allclose(T[3], (0.0, 0.0, 0.0, 1.0))):
+    if not is_rigid(T):
         raise _refused(NO_ODOMETRY, f"{what} is not a finite rigid transform")
     return T
 

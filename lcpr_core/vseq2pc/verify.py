@@ -8,6 +8,8 @@ candidate scan's compact cloud (kept by the map) with the project's
 fine stages), under thresholds for a depth network's error (:data:`DEPTH_VERIFIER`). Per candidate:
 ``verified``, ``fitness``, ``match_T_query`` (the query *camera*'s pose in the scan's LiDAR frame) and
 its 6 x 6 covariance (x, y, z, roll, pitch, yaw, in the scan frame), or the reason it was refused.
+:meth:`SequenceVerifier.confirm` then keeps a verified candidate only when earlier queries confirm its camera pose
+(``consistency``, :mod:`lcpr_core.vseq2pc.consistency`).
 """
 from __future__ import annotations
 
@@ -24,11 +26,12 @@ from ..geometry import rotation_angle_deg, skew, transform_points, wrap_angle
 from ..verification import ACCEPTED, CloudConfig, GeometricVerifier, PreparedCloud, Verification, VerifierConfig
 from ..verification.clouds import compact_cloud
 from ..verification.verifier import inlier_share
+from .consistency import ConsistencyConfig, ConsistencyGate
 from .pseudo_cloud import PseudoCloudConfig
 from .retrieval import SCAN_CLOUD, ScanMatch
 
 __all__ = ["DEPTH_VERIFIER", "NOT_VERIFIED", "NO_CLOUD", "NO_CONSENSUS", "SequenceVerifier", "SequenceVerifyConfig",
-           "camera_pose", "consensus", "rerank", "scan_cloud",
+           "ConsistencyConfig", "camera_pose", "consensus", "rerank", "scan_cloud",
            "support_counts"]
 
 NO_CLOUD = "no cloud"  # the scan has no stored cloud (a map saved before clouds were kept)
@@ -59,16 +62,19 @@ class SequenceVerifyConfig:
 
     enabled: bool = True
     top_k: int = 10
-    # min_fitness and min_support: vseq2pc_eval --verify on the validation drive (citysim seed 43, exact depth: the
-    # most recall at precision 0.95; with a depth network's 10 % error no setting reaches it, see
-    # docs/vseq2pc_verification.md)
-    min_fitness: float = 0.75  # share of the pseudo-cloud on the scan's surfaces after registration (0..1)
+    # min_fitness, min_support and consistency: vseq2pc_eval --verify on the validation drive (citysim seed 43, exact
+    # depth: the most recall that keeps precision 1.0 with a margin; with a depth network's 5-10 % error no setting
+    # publishes a right loop there, see docs/vseq2pc_verification.md)
+    min_fitness: float = 0.3  # share of the pseudo-cloud on the scan's surfaces after registration (0..1)
     max_yaw_deg: float = 45.0  # registered yaw vs the retrieval's best slice (45 deg apart)
     # consensus: a verified candidate needs this many accepted registrations (itself included) that put the query
     # camera within consensus_m / consensus_deg of the same map pose (map poses of the scans); 1 = off
     min_support: int = 2
     consensus_m: float = 1.0
     consensus_deg: float = 3.0
+    # temporal consistency: a verified candidate is published only when the chain of earlier queries confirms the
+    # camera's map pose (lcpr_core.vseq2pc.consistency); count 1 = off
+    consistency: ConsistencyConfig = field(default_factory=ConsistencyConfig)
     pseudo: PseudoCloudConfig = field(default_factory=PseudoCloudConfig)
     verifier: VerifierConfig = DEPTH_VERIFIER
     scan_cloud: CloudConfig = SCAN_CLOUD
@@ -127,6 +133,7 @@ class SequenceVerifier:
         self.config = config if config is not None else SequenceVerifyConfig()
         self.verifier = GeometricVerifier(self.config.verifier)
         self._prepared: OrderedDict[int, PreparedCloud] = OrderedDict()
+        self._gate: ConsistencyGate | None = None
 
     def prepare_query(self, points: np.ndarray) -> PreparedCloud:
         """The accumulated pseudo-cloud (N x 3, query vehicle frame), compacted and prepared once per query."""
@@ -155,6 +162,20 @@ class SequenceVerifier:
     def forget(self) -> None:
         """Drop the prepared scans (the map or the settings changed)."""
         self._prepared.clear()
+
+    def confirm(self, odom_T_base: np.ndarray | None, candidates: list[ScanMatch], *, lidar_T_cam: np.ndarray
+                ) -> list[ScanMatch]:
+        """The query's verified candidates that the earlier queries confirm (``verify.consistency``), re-ranked;
+        the others turn "inconsistent". Call it for every query in stream order, those without candidates too."""
+        L = np.asarray(lidar_T_cam, np.float64).reshape(4, 4)
+        if self._gate is None or not np.array_equal(self._gate.lidar_T_cam, L):
+            self._gate = ConsistencyGate(self.config.consistency, lidar_T_cam=L)
+        return rerank(self._gate.admit(odom_T_base, candidates))
+
+    def restart(self) -> None:
+        """A new session: odometry does not chain across it, the consistency history is dropped."""
+        if self._gate is not None:
+            self._gate.reset()
 
     def verify(self, query: PreparedCloud, candidate: ScanMatch, cloud: np.ndarray | None, *,
                lidar_T_cam: np.ndarray, errors: list[str] | None = None) -> ScanMatch:

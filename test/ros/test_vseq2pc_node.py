@@ -234,10 +234,12 @@ def test_camera_sequences_revisiting_the_map_are_matched_to_the_scans_at_their_p
     assert wait_until(lambda: ros.listener.latest_values(": detector").get("loops") == str(queries), 10)
 
 
+@pytest.mark.parametrize("consistency", [1, 2])
 def test_with_exact_depth_loops_are_verified_ones_with_the_camera_pose_and_diagnostics_count_the_verdicts(
-        exact_drive: Drive, tmp_path: Path) -> None:
+        exact_drive: Drive, tmp_path: Path, consistency: int) -> None:
     extra = {"model.sequence": "bundled-exact", "model.descriptor": "bundled-exact",
-             "verify.min_fitness": 0.4, "verify.min_support": 2}  # 3 candidates a query (match.top_k)
+             "verify.min_fitness": 0.4, "verify.min_support": 2,  # 3 candidates a query (match.top_k)
+             "verify.consistency": consistency, "verify.consistency_spacing": 4.0}  # frames 2.5 m apart
     with started(exact_drive, tmp_path / "m.npz", **extra) as ros:
         node, listener = ros.node, ros.listener
         publish_map_pass(ros, exact_drive)
@@ -248,7 +250,12 @@ def test_with_exact_depth_loops_are_verified_ones_with_the_camera_pose_and_diagn
         assert listener.wait(lambda o: len(o.candidates) >= queries, WAIT)
         rows = [r for batch in listener.out.candidates for r in batch]
         loops = listener.out.loops
-        assert len(loops) >= queries - 1, (len(loops), queries)  # nearly every query: a verified loop
+        # nearly every query: a verified loop; with the temporal gate, not the first two (no query 4 m before them)
+        assert queries - 1 - 3 * (consistency - 1) <= len(loops) <= queries - 2 * (consistency - 1), (len(loops),
+                                                                                                   queries)
+        if consistency > 1:
+            assert wait_until(lambda: int(listener.latest_values(": detector").get("rejected inconsistent", "0"))
+                              >= 2, 10), listener.latest_values(": detector")
         by_query = {batch[0]["query_stamp"]: batch for batch in listener.out.candidates}
         for query_stamp, match_stamp in loops:
             best = max((r for r in by_query[query_stamp] if r["verified"] == 1.0), key=lambda r: r["fitness"])
