@@ -1,8 +1,8 @@
 """The CPU camera path that decodes, resizes and normalises each image in a pool thread: same input as the
-batched resize, simplejpeg or OpenCV underneath, the released-size descriptor kept, torch's threads left alone."""
+batched resize, simplejpeg or OpenCV underneath, torch's threads left alone (the released-size descriptor is
+checked in test_camera_decode)."""
 from __future__ import annotations
 
-import dataclasses
 import threading
 from pathlib import Path
 
@@ -95,17 +95,6 @@ def test_prepare_makes_the_range_image_beside_the_cameras_and_keeps_it_exact(key
         prepared = describer.prepare(images, points)
         assert np.array_equal(prepared.ranges[0, 0].numpy(), range_image(points, preset="nuscenes_lidar_top"))
         assert prepared.images.shape == (1, 6, 3, 64, 192) and not prepared.failed
-
-
-@pytest.mark.slow
-def test_the_released_size_descriptor_stays_within_cosine_0_9999_of_pil_on_both_real_keyframes(keyframes):
-    # the released input sizes (256 x 704 images, 32 x 1056 range image), a quarter-width seeded network
-    fast = Describer(ModelConfig(width=0.25, precision="fp32", decode="turbo", seed=0))
-    assert fast.config.image_size == (256, 704)
-    reference = Describer(dataclasses.replace(fast.config, decode="pil"), model=fast.model)
-    for images, points in keyframes:
-        got, want = fast.describe(images, points), reference.describe(images, points)
-        assert float(np.dot(got, want)) >= 0.9999
 
 
 def test_an_unusable_image_in_the_pool_path_leaves_its_slot_zero_and_says_which_and_why(keyframes):
