@@ -5,7 +5,7 @@
     g.add_loop(query_stamp, match_stamp, match_T_query, covariance)   # False: rejected as inconsistent
     g.pose(stamp), g.trajectory(), g.map_T_odom(), g.stats(), g.save(path), PoseGraphBackend.load(path)
 
-GTSAM iSAM2 (an optional extra: ``pip install gtsam``; QR factorisation, see ``_new_isam``) holds one
+GTSAM iSAM2 (an optional extra: ``pip install gtsam``; Cholesky, QR where that fails, see ``_new_isam``) holds one
 ``Pose3`` per graph node; every stamp is in seconds, every pose a 4 x 4 ``world_T_base``, every
 covariance 6 x 6 in the ROS order and meaning of :mod:`lcpr_core.posegraph` ((x, y, z, roll, pitch,
 yaw), errors in the parent frame), turned into GTSAM's with :func:`~lcpr_core.posegraph.to_gtsam_covariance`.
@@ -108,6 +108,7 @@ GRAPH_VERSION = 1
 _LINEAR_M, _LINEAR_RAD = 0.02, math.radians(0.1)  # a loop that moved its node less was solved in one update
 _CONVERGED_M, _CONVERGED_RAD = 1e-3, math.radians(0.01)  # an extra iSAM2 update that moves less: stop
 _PATH_LENGTH_M = 10.0  # a radian of relative-pose uncertainty weighs as much as 10 m when choosing the path
+FACTORIZATIONS = ("auto", "cholesky", "qr")
 _SLACK = 1e-6  # m, rad and s: round-off allowed when a keyframe criterion is compared
 
 # reasons a refusal is counted under (BackendError.reason)
@@ -249,7 +250,17 @@ class BackendConfig:
     odometry: OdometryNoise = field(default_factory=OdometryNoise)
     loops: LoopPolicy = field(default_factory=LoopPolicy)
     prior_sigma: float = 1e-3  # std dev (m and rad) of the prior holding the first node at its odometry
-    relinearize_threshold: float = 0.1  # iSAM2 (its default): relinearise a node whose update exceeds this (rad, m)
+    relinearize_threshold: float = 0.1  # rad: iSAM2 relinearises a node whose rotation update exceeds this
+    # m: ... or whose translation update exceeds this (looser cuts the cost of a loop by half but cost 3-20 % of
+    # ATE on validation city seed 3: the translation's linearisation point matters on a drifting odometry)
+    relinearize_translation: float = 0.1
+    # m, rad: the online reads (newest node, the check's ends) stop back-substituting below a clique whose update
+    # is under this (GTSAM's wildfire; 0.001 its default); trajectory(), nodes() and save() solve fully.
+    # 0.01: validation city seed 3 ATE within 0.02 % of 0.001's, with and without the level prior
+    wildfire_threshold: float = 0.01
+    # iSAM2's factorisation: cholesky (faster), qr (robust), or auto: Cholesky until it declares the graph
+    # indeterminate, then QR for good (the graph rebuilt once from its factors; see _new_isam)
+    factorization: str = "auto"
     level_sigma_deg: float = 0.0  # > 0: every node's up axis is pulled to the world's up with this std dev; 0 = off
     gravity_sigma_deg: float = 0.0  # > 0: every node's tilt is held to the odometry's with this std dev; 0 = off
 
@@ -263,12 +274,15 @@ class BackendConfig:
         for name, kind in (("keyframes", KeyframeRule), ("odometry", OdometryNoise), ("loops", LoopPolicy)):
             _require(isinstance(getattr(self, name), kind),
                      f"BackendConfig.{name}={getattr(self, name)!r}; expected a {kind.__name__}")
-        for name in ("prior_sigma", "relinearize_threshold"):
+        for name in ("prior_sigma", "relinearize_threshold", "relinearize_translation"):
             value = getattr(self, name)
             _require(_is_real(value) and math.isfinite(value) and value > 0,
                      f"BackendConfig.{name}={value!r}; expected a finite number > 0")
         _finite_non_negative(self, "level_sigma_deg")
         _finite_non_negative(self, "gravity_sigma_deg")
+        _finite_non_negative(self, "wildfire_threshold")
+        _require(self.factorization in FACTORIZATIONS,
+                 f"BackendConfig.factorization={self.factorization!r}; expected one of {', '.join(FACTORIZATIONS)}")
 
 
 @dataclass(frozen=True)
@@ -315,6 +329,8 @@ class PoseGraphBackend:
         self._cum = GrowableArray(np.float64, (6, 6))  # prefix sums of world-frame odometry covariances
         self._step_cov = GrowableArray(np.float64, (6, 6))  # ROS-order covariance of each node step
         self._loops: list[_Loop] = []
+        self._loop_ends = GrowableArray(np.int64, (2,))  # (parent, child) of each accepted loop
+        self._loop_world_cov = GrowableArray(np.float64, (6, 6))  # their world_cov, stacked for the path search
         self._rejected = 0
         self._redundant = 0
         self._travel: list[float] = []  # m along the odometry at each node
@@ -323,6 +339,7 @@ class PoseGraphBackend:
         self._last_chi2: float | None = None
         self._newest = np.eye(4)  # estimate of the newest node
         self._estimates: np.ndarray | None = None  # (K, 4, 4) cache, None when stale
+        self._qr = config.factorization == "qr"
         self._isam = self._new_isam()
 
     # -- inputs ------------------------------------------------------------------------------
@@ -395,10 +412,10 @@ class PoseGraphBackend:
         graph = gt.NonlinearFactorGraph()
         graph.add(gt.BetweenFactorPose3(parent, child, _pose3(gt, measured), self._loop_noise(gtsam_cov)))
         moved_from = self._isam.calculateEstimatePose3(child).matrix()
-        self._isam.update(graph, gt.Values())
+        self._update(graph, gt.Values())
         self._converge(child, moved_from)
-        self._loops.append(_Loop(parent, child, measured, measured_cov, (q, m), chi2,
-                                 _to_world(gtsam_cov, self._node_odom(child))))
+        self._remember(_Loop(parent, child, measured, measured_cov, (q, m), chi2,
+                             _to_world(gtsam_cov, self._node_odom(child))))
         self._refresh()
         self._last_loop_s = time.perf_counter() - tic
         return True
@@ -480,16 +497,39 @@ class PoseGraphBackend:
 
     # -- internals: graph ------------------------------------------------------------------
     def _new_isam(self) -> Any:
-        params = self._gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(float(self.config.relinearize_threshold))
+        gt, cfg = self._gtsam, self.config
+        params = gt.ISAM2Params()
+        # per tangent component (Pose3: rotation, then translation) of every key: our keys are plain integers,
+        # whose Symbol character is '\0'
+        limits = gt.ISAM2ThresholdMap()
+        limits.insert(("\0", np.array([cfg.relinearize_threshold] * 3 + [cfg.relinearize_translation] * 3)))
+        params.setRelinearizeThreshold(limits)
+        params.setOptimizationParams(gt.ISAM2GaussNewtonParams(float(cfg.wildfire_threshold)))
         params.relinearizeSkip = 1
         params.enablePartialRelinearizationCheck = True  # check only the cliques an update touched
-        # QR, not Cholesky: standing still while turning (a handheld sensor, a robot turning in place) gives
-        # node steps known to a fraction of a millimetre in position but only to tenths of a degree in
-        # rotation; after a few dozen such nodes Cholesky of the normal equations declared the system
-        # indeterminate (livox_hku/campus, 144 nodes), while QR of the Jacobian solves it
-        params.setFactorization("QR")
+        # Cholesky is a quarter to a half faster per update than QR, but standing still while turning (a
+        # handheld sensor, a robot turning in place) gives node steps known to a fraction of a millimetre in
+        # position but only to tenths of a degree in rotation; after a few dozen such nodes Cholesky of the
+        # normal equations declared the system indeterminate (livox_hku/campus, 144 nodes), while QR of the
+        # Jacobian solves it: "auto" starts with Cholesky and moves to QR when that happens (_update)
+        params.setFactorization("QR" if self._qr else "CHOLESKY")
         return self._gtsam.ISAM2(params)
+
+    def _update(self, graph: Any = None, values: Any = None) -> None:
+        """One iSAM2 update; under ``factorization: auto``, a Cholesky failure rebuilds the graph with QR."""
+        try:
+            if graph is None:
+                self._isam.update()
+            else:
+                self._isam.update(graph, values)
+        except RuntimeError as err:
+            if self._qr or self.config.factorization != "auto" or "ndetermina" not in str(err):
+                raise
+            # the failed update had already taken its factors and values: rebuild from them with QR
+            factors, theta = self._isam.getFactorsUnsafe(), self._isam.getLinearizationPoint()
+            self._qr = True
+            self._isam = self._new_isam()
+            self._isam.update(factors, theta)
 
     def _add_first_node(self, row: int) -> None:
         gt = self._gtsam
@@ -498,7 +538,7 @@ class PoseGraphBackend:
         graph.add(gt.PriorFactorPose3(0, _pose3(gt, pose), gt.noiseModel.Isotropic.Sigma(6, self.config.prior_sigma)))
         values.insert(0, _pose3(gt, pose))
         self._add_level(graph, 0, pose)
-        self._isam.update(graph, values)
+        self._update(graph, values)
         self._node_index.append(row)
         self._node_stamps.append(float(self._stamps.view()[row]))
         self._cum.extend(np.zeros((1, 6, 6)))
@@ -518,7 +558,7 @@ class PoseGraphBackend:
                                         gt.noiseModel.Gaussian.Covariance(gtsam_cov)))
         values.insert(k, _pose3(gt, self._newest @ step if initial is None else initial))
         self._add_level(graph, k, odom[row])
-        self._isam.update(graph, values)
+        self._update(graph, values)
         self._node_index.append(row)
         self._node_stamps.append(float(self._stamps.view()[row]))
         self._step_cov.extend(cov[None])
@@ -540,7 +580,7 @@ class PoseGraphBackend:
             step = invert(before) @ now
             if np.linalg.norm(step[:3, 3]) < limits[0] and _rotation_angle(step[:3, :3]) < limits[1]:
                 return
-            self._isam.update()
+            self._update()
             before, limits = now, (_CONVERGED_M, _CONVERGED_RAD)
 
     def _add_level(self, graph: Any, node: int, odometry: np.ndarray) -> None:
@@ -570,12 +610,20 @@ class PoseGraphBackend:
     def _node_estimates(self) -> np.ndarray:
         if self._estimates is None:
             k = len(self._node_index)
-            values = self._isam.calculateEstimate()
+            # a full back-substitution: the online reads (the newest node, the check's two ends) stop at
+            # wildfire_threshold, the trajectory and the saved graph do not
+            values = self._isam.calculateBestEstimate()
             self._estimates = np.stack([values.atPose3(i).matrix() for i in range(k)]) if k else np.zeros((0, 4, 4))
         return self._estimates
 
     def _node_odom(self, node: int) -> np.ndarray:
         return self._odom.view()[self._node_index[node]]
+
+    def _remember(self, loop: _Loop) -> None:
+        """Keep an accepted loop (and its ends and world covariance for the consistency check's path search)."""
+        self._loops.append(loop)
+        self._loop_ends.extend(np.array([[loop.parent, loop.child]], np.int64))
+        self._loop_world_cov.extend(loop.world_cov[None])
 
     def _is_redundant(self, parent: int, child: int) -> bool:
         """Whether an accepted loop joins places within ``loops.min_spacing_m`` of travel of both ends."""
@@ -604,18 +652,20 @@ class PoseGraphBackend:
         to_b = _adjoint(invert(self._node_odom(b)))
         if not self._loops:
             return to_b @ (cum[max(a, b)] - cum[min(a, b)]) @ to_b.T
-        ends = sorted({a, b, *(lp.parent for lp in self._loops), *(lp.child for lp in self._loops)})
-        slot = {node: i for i, node in enumerate(ends)}
-        edges: list[tuple[int, int, np.ndarray]] = [
-            (i, i + 1, cum[ends[i + 1]] - cum[ends[i]]) for i in range(len(ends) - 1)]
-        edges += [(slot[lp.parent], slot[lp.child], lp.world_cov) for lp in self._loops]
+        loop_ends = self._loop_ends.view()  # L x 2
+        ends = np.unique(np.concatenate([[a, b], loop_ends.ravel()]))  # E sorted nodes
+        # edges: the odometry stretches between consecutive ends, then the loops; their covariances E' x 6 x 6
+        tail = np.searchsorted(ends, loop_ends)  # L x 2 slots
+        first = np.concatenate([np.arange(len(ends) - 1), tail[:, 0]])
+        second = np.concatenate([np.arange(1, len(ends)), tail[:, 1]])
+        covs = np.concatenate([cum[ends[1:]] - cum[ends[:-1]], self._loop_world_cov.view()])
         weight = to_b.T @ np.diag([_PATH_LENGTH_M**2] * 3 + [1.0] * 3) @ to_b
-        costs = np.einsum("eij,ij->e", np.stack([e[2] for e in edges]), weight)
+        costs = np.maximum(np.einsum("eij,ij->e", covs, weight), 0.0).tolist()
         adjacency: list[list[tuple[int, int]]] = [[] for _ in ends]
-        for e, (i, j, _) in enumerate(edges):
+        for e, (i, j) in enumerate(zip(first.tolist(), second.tolist(), strict=True)):
             adjacency[i].append((j, e))
             adjacency[j].append((i, e))
-        start, goal = slot[a], slot[b]
+        start, goal = int(np.searchsorted(ends, a)), int(np.searchsorted(ends, b))
         best = [math.inf] * len(ends)
         via: list[int] = [-1] * len(ends)
         best[start] = 0.0
@@ -627,16 +677,17 @@ class PoseGraphBackend:
             if d > best[i]:
                 continue
             for j, e in adjacency[i]:
-                nd = d + max(float(costs[e]), 0.0)
+                nd = d + costs[e]
                 if nd < best[j]:
                     best[j], via[j] = nd, e
                     heapq.heappush(heap, (nd, j))
-        total = np.zeros((6, 6))
+        path: list[int] = []
         i = goal
         while i != start:
             e = via[i]
-            total += edges[e][2]
-            i = edges[e][0] if edges[e][1] == i else edges[e][1]
+            path.append(e)
+            i = int(first[e]) if int(second[e]) == i else int(second[e])
+        total = covs[path].sum(axis=0)  # 6 x 6
         return to_b @ total @ to_b.T
 
     # -- internals: stamps and checks ------------------------------------------------------
@@ -767,12 +818,12 @@ class PoseGraphBackend:
                 data["loop_chi2"], strict=True):
             gtsam_cov = to_gtsam_covariance(cov, measured[:3, :3])
             graph.add(gt.BetweenFactorPose3(int(parent), int(child), _pose3(gt, measured), self._loop_noise(gtsam_cov)))
-            self._loops.append(_Loop(int(parent), int(child), measured.copy(), cov.copy(),
-                                     (float(stamps[0]), float(stamps[1])), float(chi2),
-                                     _to_world(gtsam_cov, self._node_odom(int(child)))))
-        self._isam.update(graph, values)
+            self._remember(_Loop(int(parent), int(child), measured.copy(), cov.copy(),
+                                 (float(stamps[0]), float(stamps[1])), float(chi2),
+                                 _to_world(gtsam_cov, self._node_odom(int(child)))))
+        self._update(graph, values)
         for _ in range(max(self.config.loops.iterations, 1)):
-            self._isam.update()
+            self._update()
         self._rejected, self._redundant, self._refused = rejected, redundant, Counter(refused)
         self._refresh()
 
@@ -859,7 +910,10 @@ def config_dict(config: BackendConfig) -> dict[str, Any]:
     """A JSON-ready summary of a config (reports, benchmarks)."""
     out: dict[str, Any] = {name: asdict(getattr(config, name)) for name in ("keyframes", "odometry", "loops")}
     out.update(base_T_lidar=np.asarray(config.base_T_lidar).tolist(), prior_sigma=config.prior_sigma,
-               relinearize_threshold=config.relinearize_threshold, level_sigma_deg=config.level_sigma_deg,
+               relinearize_threshold=config.relinearize_threshold,
+               relinearize_translation=config.relinearize_translation, wildfire_threshold=config.wildfire_threshold,
+               factorization=config.factorization,
+               level_sigma_deg=config.level_sigma_deg,
                gravity_sigma_deg=config.gravity_sigma_deg)
     return out
 

@@ -435,6 +435,9 @@ def test_a_loop_stamp_inside_an_odometry_gap_was_never_seen() -> None:
     (lambda: OdometryNoise(translation_frac=0.0), r"translation_frac=0\.0"),
     (lambda: BackendConfig(base_T_lidar=np.eye(3)), r"base_T_lidar of shape \(3, 3\)"),
     (lambda: BackendConfig(prior_sigma=0.0), r"prior_sigma=0\.0; expected a finite number > 0"),
+    (lambda: BackendConfig(relinearize_translation=0.0), r"relinearize_translation=0\.0; expected a finite number > 0"),
+    (lambda: BackendConfig(wildfire_threshold=-1.0), r"wildfire_threshold=-1\.0; expected a finite number >= 0"),
+    (lambda: BackendConfig(factorization="lu"), r"factorization='lu'; expected one of auto, cholesky, qr"),
 ])
 def test_bad_options_are_refused_naming_the_value(make: object, message: str) -> None:
     with pytest.raises(BackendError, match=message):
@@ -490,3 +493,39 @@ def test_standing_still_and_turning_for_minutes_after_a_walk_keeps_the_graph_sol
         g.add_odometry(t, p)
     assert g.stats().nodes > 140
     np.testing.assert_allclose(g.trajectory()[1][-1], p, atol=1e-6)  # no loop: the graph is the odometry
+
+
+def test_the_trajectory_is_the_full_solve_whatever_the_wildfire_threshold() -> None:
+    """Online reads may stop back-substitution early (wildfire_threshold); nodes() and trajectory() must not."""
+    stamps, truth, drifted, per_lap = drive(laps=2)
+    runs = []
+    for wildfire in (0.0, 0.5):
+        g = fed(stamps[: per_lap + 1], drifted[: per_lap + 1],
+                BackendConfig(base_T_lidar=BASE_T_LIDAR, wildfire_threshold=wildfire))
+        for q in range(per_lap + 1, len(truth)):
+            g.add_odometry(float(stamps[q]), drifted[q])
+            if q % 40 == 0:
+                assert g.add_loop(stamps[q], stamps[q - per_lap], lidar_loop(truth, q, q - per_lap), LOOP_COV)
+        partial = np.stack([g._isam.calculateEstimatePose3(i).matrix() for i in range(g.stats().nodes)])
+        runs.append((g.nodes()[1], partial))
+    (exact, _), (nodes, partial) = runs
+    assert np.abs(partial[:, :3, 3] - exact[:, :3, 3]).max() > 0.01  # the online reads did stop early
+    # the full solve; the relinearisation, which reads the partial one, leaves round-off of a millimetre
+    np.testing.assert_allclose(nodes[:, :3, 3], exact[:, :3, 3], atol=2e-3)
+
+
+def test_auto_factorization_moves_to_qr_where_cholesky_declares_a_spin_in_place_indeterminate() -> None:
+    """Turning in place with steps known to nanometres but only to degrees: Cholesky fails, QR solves it."""
+    noise = OdometryNoise(translation_frac=1e-6, z_frac=1e-6, yaw_deg_per_m=100.0, roll_pitch_deg_per_m=100.0)
+    angles = np.radians(12.0 * np.arange(300))
+    spin = np.tile(np.eye(4), (len(angles), 1, 1))
+    spin[:, 0, 0] = spin[:, 1, 1] = np.cos(angles)
+    spin[:, 1, 0], spin[:, 0, 1] = np.sin(angles), -np.sin(angles)
+    spin[:, 0, 3], spin[:, 1, 3] = 1e-3 * np.sin(np.arange(300)), 1e-3 * np.cos(np.arange(300))
+    stamps = T0 + DT * np.arange(len(spin))
+    with pytest.raises(RuntimeError, match="ndetermina"):
+        fed(stamps, spin, BackendConfig(odometry=noise, factorization="cholesky"))
+    qr = fed(stamps, spin, BackendConfig(odometry=noise, factorization="qr"))
+    auto = fed(stamps, spin, BackendConfig(odometry=noise))
+    assert auto.stats().nodes == qr.stats().nodes == len(spin)
+    np.testing.assert_allclose(auto.trajectory()[1], qr.trajectory()[1], atol=1e-6)
