@@ -21,6 +21,10 @@ compare settings back to back). Prints medians and p90 on this CPU: wall time an
 run's verdicts against such a file, candidate for candidate (e.g. before and after a change to the
 verifier), prints what differs and exits with status 1 when a decision or a reason differs or a pose
 moved more than 1 mm / 0.01 deg.
+
+It also counts the accepted pairs whose pose is right (within 0.5 m / 3 deg of the drive's LiDAR poses) and
+lists those accepted with a wrong pose: a candidate nearest in position may lie 5-20 m away, and accepting it is
+no error only with its pose right.
 """
 from __future__ import annotations
 
@@ -35,6 +39,7 @@ import numpy as np
 
 POSE_TOLERANCE_M = 1e-3  # --compare: a pose that moved more than this (or the angle below) is a difference
 POSE_TOLERANCE_DEG = 1e-2
+POSE_OK_M, POSE_OK_DEG = 0.5, 3.0  # an accepted pair's pose is right within these of the drive's poses
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -118,6 +123,11 @@ def main(argv: list[str] | None = None) -> int:
     for name, (wall, cpu_time) in timed.items():
         print(f"  verification per keyframe, candidate clouds cached, {name}: {ms(wall)} (CPU time {ms(cpu_time)})")
     print(f"  verification per keyframe, nothing cached, one by one: {ms(uncached)}")
+    right, wrong = _pose_check(verdicts, seq.poses)
+    print(f"  accepted with the right pose (within {POSE_OK_M} m / {POSE_OK_DEG} deg of the drive's): {right}; "
+          f"with a wrong pose: {len(wrong)}")
+    for line in wrong:
+        print("    " + line)
     records = {f"{q}-{m}": _record(v) for (q, m), v in verdicts.items()}
     if args.save is not None:
         write_atomic(args.save, lambda path: path.write_text(json.dumps(records, indent=1) + "\n"))
@@ -133,6 +143,25 @@ def main(argv: list[str] | None = None) -> int:
     for line in mismatches[:20]:
         print("    " + line)
     return 1 if mismatches else 0
+
+
+def _pose_check(verdicts: dict[tuple[int, int], Any], poses: np.ndarray) -> tuple[int, list[str]]:
+    """(accepted pairs whose pose is right, a line per accepted pair whose pose is wrong) against the drive's
+    LiDAR poses (N x 4 x 4): a candidate may be any distance away, but an accepted one must have its pose."""
+    from lcpr_offline.verification_pairs import pose_error
+
+    right, wrong = 0, []
+    for (q, m), v in sorted(verdicts.items()):
+        if not v.accepted:
+            continue
+        err_m, err_deg = pose_error(v.match_T_query, np.linalg.inv(poses[m]) @ poses[q])
+        if err_m <= POSE_OK_M and err_deg <= POSE_OK_DEG:
+            right += 1
+        else:
+            apart = float(np.linalg.norm(poses[q, :3, 3] - poses[m, :3, 3]))
+            wrong.append(f"{q}-{m}: {apart:.1f} m apart, pose off by {err_m:.2f} m / {err_deg:.1f} deg "
+                         f"(fitness {v.fitness:.3f})")
+    return right, wrong
 
 
 def _record(v: Any) -> dict[str, Any]:

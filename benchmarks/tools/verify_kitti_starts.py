@@ -55,13 +55,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--reference", choices=("registered", "poses"), default="registered",
                    help="the known pose: poses.txt refined by registration (default), or poses.txt as it is")
     p.add_argument("--json", type=Path, default=None, help="also write the summary and every case here")
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                   help="override a numeric VerifierConfig field, e.g. fine_points=2048 (repeatable)")
     args = p.parse_args(argv)
 
+    from lcpr_core.errors import VerificationError
     from lcpr_core.timing import cpu_model
     from lcpr_core.verification import GeometricVerifier, VerifierConfig
+    from lcpr_core.verification.config import with_settings
     from lcpr_offline.kitti_scans import kitti_start_trials
 
-    verifier = GeometricVerifier(VerifierConfig())
+    try:
+        verifier = GeometricVerifier(with_settings(VerifierConfig(), args.set))
+    except VerificationError as err:
+        raise SystemExit(f"--set: {err}") from err
     rows = kitti_start_trials(verifier, trials=args.trials, seed=args.seed, folder=args.kitti,
                               reference=args.reference)
     print(f"CPU: {cpu_model()}, verifier threads {verifier.config.num_threads}; {len(rows)} cases "

@@ -175,20 +175,27 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-keyframes", type=int, default=None, help="SubmapConfig.max_keyframes")
     p.add_argument("--max-points", type=int, default=None, help="SubmapConfig.max_points")
     p.add_argument("--only", choices=SETS, default=None, help="one set only (tuning runs)")
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                   help="override a numeric VerifierConfig field, e.g. fine_points=2048 (repeatable)")
     p.add_argument("--out", type=Path, default=Path("out/verify_real"))
     args = p.parse_args(argv)
     from lcpr_common.shared_data import shared_path
+    from lcpr_core.errors import VerificationError
     from lcpr_core.timing import cpu_model
     from lcpr_core.verification import GeometricVerifier, SubmapConfig, VerifierConfig
+    from lcpr_core.verification.config import with_settings
     from lcpr_offline.verification_pairs import PreparedScans, far_pairs, split_at, split_pairs, true_pairs
     from msg_tools.convert.scan_folder import ScanFolder
 
     data = args.data or shared_path("data", "livox_hku")
-    verifier = GeometricVerifier(VerifierConfig())
+    try:
+        verifier = GeometricVerifier(with_settings(VerifierConfig(), args.set))
+    except VerificationError as err:
+        raise SystemExit(f"--set: {err}") from err
     options = {"travel_m": args.travel_m, "max_keyframes": args.max_keyframes, "max_points": args.max_points}
     submap = SubmapConfig(mode=args.submap, **{k: v for k, v in options.items() if v is not None})
     print(f"CPU: {platform.processor() or platform.machine()} ({cpu_model()}), verifier threads "
-          f"{verifier.config.num_threads}; {submap}")
+          f"{verifier.config.num_threads}; {submap}; settings {args.set or 'the defaults'}")
     results: dict[str, Any] = {}  # Any: np.savez's keywords also name its own allow_pickle flag
     summary = {}
     for name in (args.only,) if args.only else SETS:

@@ -1,7 +1,10 @@
 """Typed settings of the geometric verification stage (one source for the node, lcpr_eval and the demo)."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field, fields, replace
+from typing import Any
 
 from ..errors import VerificationError
 
@@ -135,6 +138,23 @@ class VerifierConfig:
         if self.bev_extent / self.bev_cell > 1024:
             raise VerificationError(f"verify.bev_extent / verify.bev_cell = {self.bev_extent / self.bev_cell:.0f} "
                                     "cells; accepted: at most 1024 (a larger view is slower, not better)")
+
+
+def with_settings(config: VerifierConfig, items: Sequence[str]) -> VerifierConfig:
+    """``config`` with numeric fields set from "NAME=VALUE" items (benchmarks compare settings back to back)."""
+    numeric = {f.name for f in fields(VerifierConfig)} - {"enabled", "cloud", "registration"}
+    values: dict[str, Any] = {}  # Any: the fields are of several types
+    for item in items:
+        name, sep, text = (part.strip() for part in item.partition("="))
+        try:
+            value: int | float = int(text) if text.lstrip("-").isdigit() else float(text)
+        except ValueError:
+            value = math.nan
+        if not sep or name not in numeric or value != value:
+            raise VerificationError(f"setting {item!r}; accepted: NAME=NUMBER, NAME one of "
+                                    f"{', '.join(sorted(numeric))}")
+        values[name] = value
+    return replace(config, **values)
 
 
 def _positive(obj: object, *names: str) -> None:

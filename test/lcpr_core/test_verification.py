@@ -483,3 +483,27 @@ def test_a_borderline_overlap_is_read_again_from_every_point_so_the_verdict_is_t
         assert v.accepted is verdict, (threshold, v.reason)
     far = GeometricVerifier(VerifierConfig(num_threads=1, overlap_points=1024, min_fitness=full.fitness - 0.2))
     assert far.verify_prepared(q, m).fitness != full.fitness  # far from the threshold the sample decides
+
+
+def test_benchmark_settings_override_numeric_fields_by_name_and_keep_the_rest():
+    from lcpr_core.verification.config import with_settings
+
+    config = with_settings(CONFIG, ["fine_points=2048", " early_reject = 0.9"])
+    assert (config.fine_points, config.early_reject) == (2048, 0.9)
+    assert isinstance(config.fine_points, int)
+    assert config.min_fitness == CONFIG.min_fitness and config.cloud == CONFIG.cloud
+
+
+@pytest.mark.parametrize("item", ["fine_points", "no_such_field=3", "registration=2", "fine_points=many"])
+def test_a_benchmark_setting_that_is_not_a_numeric_field_is_refused_with_the_accepted_names(item):
+    from lcpr_core.verification.config import with_settings
+
+    with pytest.raises(VerificationError, match=re.escape(repr(item)) + r".*accepted: NAME=NUMBER.*fine_points"):
+        with_settings(CONFIG, [item])
+
+
+def test_a_benchmark_setting_out_of_range_is_refused_by_the_config_itself():
+    from lcpr_core.verification.config import with_settings
+
+    with pytest.raises(VerificationError, match="fine_points=0"):
+        with_settings(CONFIG, ["fine_points=0"])
