@@ -2,9 +2,13 @@
 the same route REVISIT s later (a second visit of every place)."""
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from citysim import SynthConfig, SyntheticDrive
+from lcpr_core.pretrained import default_vseq2pc_weights
+from lcpr_core.vseq2pc import Vseq2pcNet
 from lcpr_core.vseq2pc.detector import CameraFrame, LabelledScan
 
 FRAMES = 16
@@ -28,3 +32,25 @@ def short_drive(**options: object) -> tuple[SyntheticDrive, list[LabelledScan], 
         cameras.append(CameraFrame(REVISIT + i * DT, image.depth.astype(np.float32), image.labels.astype(np.uint16),
                                    camera.K, synth.pose(i)))
     return synth, scans, cameras
+
+
+@dataclass
+class Drive:
+    """The short drive as a detector test uses it: scans, camera frames, the camera's mount, the bundled network."""
+
+    scans: list[LabelledScan]
+    cameras: list[CameraFrame]
+    lidar_T_cam: np.ndarray  # 4 x 4
+    net: Vseq2pcNet
+
+    @property
+    def extrinsics(self) -> tuple[float, ...]:
+        """``lidar_T_cam`` as SequenceDetectorConfig takes it (16 numbers, row-major)."""
+        return tuple(self.lidar_T_cam.ravel().tolist())
+
+
+def bundled_net() -> Vseq2pcNet:
+    """The bundled VSeq2PC weights (part of the checkout)."""
+    weights = default_vseq2pc_weights()
+    assert weights is not None, "weights/vseq2pc_synth_*.pth are missing from this checkout"
+    return Vseq2pcNet.from_files(sequence=weights[0], descriptor=weights[1])

@@ -5,48 +5,32 @@ LiDAR scans as the map and its depth + label images as the camera pass 100 s lat
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from lcpr_core.errors import InvalidValueError
 from lcpr_core.keyframes import KEYFRAME, NOT_MOVED, KeyframeConfig
-from lcpr_core.pretrained import default_vseq2pc_weights
-from lcpr_core.vseq2pc import Vseq2pcNet
 from lcpr_core.vseq2pc.detector import (
-    CameraFrame,
-    LabelledScan,
     SequenceDetector,
     SequenceDetectorConfig,
 )
 from lcpr_core.vseq2pc.retrieval import SearchConfig
 from lcpr_core.vseq2pc.sequence import sequence_table
 from lcpr_core.vseq2pc.verify import SequenceVerifyConfig
-from vseq2pc_drives import DT, FRAMES, REVISIT, short_drive
+from vseq2pc_drives import DT, FRAMES, REVISIT, Drive, bundled_net, short_drive
 from vseq2pc_ros.config import NodeConfig, Vseq2pcMatchConfig
-
-
-@dataclass
-class Drive:
-    scans: list[LabelledScan]
-    cameras: list[CameraFrame]
-    lidar_T_cam: tuple[float, ...]
-    net: Vseq2pcNet
 
 
 @pytest.fixture(scope="module")
 def drive() -> Drive:
-    weights = default_vseq2pc_weights()
-    assert weights is not None, "weights/vseq2pc_synth_*.pth are missing from this checkout"
-    net = Vseq2pcNet.from_files(sequence=weights[0], descriptor=weights[1])
     _, scans, cameras = short_drive()
-    lidar_T_cam = tuple(NodeConfig().extrinsics.lidar_T_cam().ravel().tolist())
-    return Drive(scans, cameras, lidar_T_cam, net)
+    return Drive(scans, cameras, NodeConfig().extrinsics.lidar_T_cam(), bundled_net())
 
 
 def detector(drive: Drive, **config: object) -> SequenceDetector:
-    cfg = SequenceDetectorConfig(lidar_T_cam=drive.lidar_T_cam, search=SearchConfig(k=3), **config)  # type: ignore[arg-type]
+    cfg = SequenceDetectorConfig(lidar_T_cam=drive.extrinsics, search=SearchConfig(k=3), **config)  # type: ignore[arg-type]
     det = SequenceDetector(cfg, net=drive.net)
     for scan in drive.scans:
         assert det.scan_keyframe(scan.stamp, scan.pose) == KEYFRAME

@@ -6,7 +6,7 @@ same poses, with the bundled weights: every candidate near the query is a true p
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -15,10 +15,9 @@ import pytest
 from lcpr_core.errors import InvalidValueError, VerificationError
 from lcpr_core.geometry import rotation_angle_deg
 from lcpr_core.map_file import write_map_file
-from lcpr_core.pretrained import default_vseq2pc_weights
-from lcpr_core.vseq2pc import Vseq2pcMap, Vseq2pcNet
+from lcpr_core.vseq2pc import Vseq2pcMap
 from lcpr_core.vseq2pc.consistency import INCONSISTENT, ConsistencyConfig
-from lcpr_core.vseq2pc.detector import CameraFrame, LabelledScan, SequenceDetector, SequenceDetectorConfig
+from lcpr_core.vseq2pc.detector import CameraFrame, SequenceDetector, SequenceDetectorConfig
 from lcpr_core.vseq2pc.pseudo_cloud import (
     BAD_DEPTH,
     BAD_INTRINSICS,
@@ -40,7 +39,7 @@ from lcpr_core.vseq2pc.verify import (
     support_counts,
 )
 from lcpr_core.vseq2pc.verify_eval import Accepted, QueryOutcome, choose, sweep
-from vseq2pc_drives import FRAMES, short_drive
+from vseq2pc_drives import FRAMES, Drive, bundled_net, short_drive
 
 #: 3 candidates a query here (the defaults ask 4 that agree, and a fitness chosen on 600-frame drives)
 SHORT_DRIVE_VERIFY = SequenceVerifyConfig(min_fitness=0.4, min_support=2, consistency=ConsistencyConfig(count=1))
@@ -48,27 +47,16 @@ K = np.array([[200.0, 0.0, 160.0], [0.0, 200.0, 48.0], [0.0, 0.0, 1.0]])
 LIDAR_T_CAM = np.array([[0.0, 0.0, 1.0, 0.27], [-1.0, 0.0, 0.0, 0.06], [0.0, -1.0, 0.0, -0.08], [0, 0, 0, 1.0]])
 
 
-@dataclass
-class Drive:
-    scans: list[LabelledScan]
-    cameras: list[CameraFrame]
-    lidar_T_cam: np.ndarray
-    net: Vseq2pcNet
-
-
 @pytest.fixture(scope="module")
 def drive() -> Drive:
-    weights = default_vseq2pc_weights()
-    assert weights is not None, "weights/vseq2pc_synth_*.pth are missing from this checkout"
-    net = Vseq2pcNet.from_files(sequence=weights[0], descriptor=weights[1])
     synth, scans, cameras = short_drive(depth_noise=0.0, depth_range=0.0)
     camera = synth.rig.cameras[0]
     lidar_T_cam = np.linalg.inv(synth.rig.lidar.base_T_lidar) @ camera.base_T_cam
-    return Drive(scans, cameras, lidar_T_cam, net)
+    return Drive(scans, cameras, lidar_T_cam, bundled_net())
 
 
 def detector(drive: Drive, **config: object) -> SequenceDetector:
-    cfg = SequenceDetectorConfig(lidar_T_cam=tuple(drive.lidar_T_cam.ravel().tolist()), search=SearchConfig(k=3),
+    cfg = SequenceDetectorConfig(lidar_T_cam=drive.extrinsics, search=SearchConfig(k=3),
                                  **config)  # type: ignore[arg-type]
     det = SequenceDetector(cfg, net=drive.net)
     for scan in drive.scans:
@@ -183,7 +171,7 @@ def test_a_map_file_from_before_clouds_loads_and_its_candidates_stay_unverified(
                                                    "stamps": db.stamps, "poses": db.poses}, kind="scan database")
     old = Vseq2pcMap.load(tmp_path / "old.npz", drive.net)
     assert len(old) == FRAMES and old.cloud(0) is None
-    cfg = SequenceDetectorConfig(lidar_T_cam=tuple(drive.lidar_T_cam.ravel().tolist()), search=SearchConfig(k=3))
+    cfg = SequenceDetectorConfig(lidar_T_cam=drive.extrinsics, search=SearchConfig(k=3))
     queries = run(SequenceDetector(cfg, net=drive.net, prior_map=old), drive.cameras)
     assert queries and all(c.verification == NO_CLOUD and not c.verified for q in queries for c in q.candidates)
     assert all(q.loop is None for q in queries)
