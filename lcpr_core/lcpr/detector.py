@@ -39,7 +39,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import TypedDict, cast
@@ -53,7 +52,15 @@ from ..exclusion import matchable_prefix
 from ..keyframes import KeyframeConfig, keyframe_reason
 from ..pretrained import AUTO_DISTANCE, effective_max_distance, operating_threshold, resolve_weights
 from ..scan_context import ScanContextConfig, ScanContextRows
-from ..verification import GeometricVerifier, PreparedCloud, Submap, SubmapConfig, Verification, VerifierConfig
+from ..verification import (
+    GeometricVerifier,
+    PreparedCache,
+    PreparedCloud,
+    Submap,
+    SubmapConfig,
+    Verification,
+    VerifierConfig,
+)
 from ..verification.submap import build_submap, submap_rows
 from .describer import Describer, ModelConfig
 from .preprocess.camera import CameraInput
@@ -199,7 +206,7 @@ class LoopDetector:
         self._kf_stamp: float | None = None  # the newest keyframe decided on (described or about to be)
         self._last_position: np.ndarray | None = None
         self.verifier = GeometricVerifier(config.verify)
-        self._prepared: OrderedDict[tuple[int, ...], PreparedCloud] = OrderedDict()  # (centre id, ids stitched)
+        self._prepared = PreparedCache(PREPARED_CACHE)  # by (centre id, ids stitched)
         self._submap_config = config.submap  # what the prepared clouds were stitched with
         self.weights_threshold = operating_threshold(resolve_weights(config.model.weights))  # the file's, or None
         self.scan_contexts = self._prior_scan_contexts() if config.match.method != "lcpr" else None  # row-aligned
@@ -383,16 +390,11 @@ class LoopDetector:
         key = (int(keyframe_id), *(int(i) for i in self.map.ids[[lo + r for r in rows]]))
         cached = self._prepared.get(key)
         if cached is not None:
-            self._prepared.move_to_end(key)
             return cached
         sub = self._submap(keyframe_id, before_only=False, end=end, window=window)
         if sub is None:
             return None
-        prepared = self.verifier.prepare(sub.xyz)
-        self._prepared[key] = prepared
-        if len(self._prepared) > PREPARED_CACHE:
-            self._prepared.popitem(last=False)
-        return prepared
+        return self._prepared.put(key, self.verifier.prepare(sub.xyz))
 
     def _submap(self, keyframe_id: int, *, before_only: bool, end: int | None = None,
                 window: tuple[int, tuple[int, ...], _SubmapArgs] | None = None) -> Submap | None:

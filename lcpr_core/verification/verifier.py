@@ -18,7 +18,8 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Sequence
+from collections import OrderedDict
+from collections.abc import Hashable, Iterator, Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -84,6 +85,37 @@ class PreparedCloud:
                 self._bev_query.clear()
             spectrum = self._bev_query[key] = match.query_spectrum(xyz, yaw)
         return match.locate(xyz, yaw, spectrum=spectrum)
+
+
+class PreparedCache:
+    """The last ``size`` prepared clouds by key, the least recently used dropped first: consecutive queries share
+    most candidates, and preparing a cloud (voxels, normals, trees) costs as much as registering it."""
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self._items: OrderedDict[Hashable, PreparedCloud] = OrderedDict()
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __iter__(self) -> Iterator[Hashable]:
+        return iter(self._items)  # keys, least recently used first
+
+    def get(self, key: Hashable) -> PreparedCloud | None:
+        hit = self._items.get(key)
+        if hit is not None:
+            self._items.move_to_end(key)
+        return hit
+
+    def put(self, key: Hashable, prepared: PreparedCloud) -> PreparedCloud:
+        self._items[key] = prepared
+        self._items.move_to_end(key)
+        if len(self._items) > self.size:
+            self._items.popitem(last=False)
+        return prepared
+
+    def clear(self) -> None:
+        self._items.clear()
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -23,7 +22,15 @@ import numpy as np
 
 from ..errors import InvalidValueError, LcprError
 from ..geometry import rotation_angle_deg, skew, transform_points, wrap_angle
-from ..verification import ACCEPTED, CloudConfig, GeometricVerifier, PreparedCloud, Verification, VerifierConfig
+from ..verification import (
+    ACCEPTED,
+    CloudConfig,
+    GeometricVerifier,
+    PreparedCache,
+    PreparedCloud,
+    Verification,
+    VerifierConfig,
+)
 from ..verification.clouds import compact_cloud
 from ..verification.verifier import inlier_share
 from .consistency import ConsistencyConfig, ConsistencyGate
@@ -132,7 +139,7 @@ class SequenceVerifier:
     def __init__(self, config: SequenceVerifyConfig | None = None) -> None:
         self.config = config if config is not None else SequenceVerifyConfig()
         self.verifier = GeometricVerifier(self.config.verifier)
-        self._prepared: OrderedDict[int, PreparedCloud] = OrderedDict()
+        self._prepared = PreparedCache(PREPARED_CACHE)
         self._gate: ConsistencyGate | None = None
 
     def prepare_query(self, points: np.ndarray) -> PreparedCloud:
@@ -141,14 +148,7 @@ class SequenceVerifier:
 
     def _scan(self, scan_id: int, cloud: np.ndarray) -> PreparedCloud:
         hit = self._prepared.get(scan_id)
-        if hit is not None:
-            self._prepared.move_to_end(scan_id)
-            return hit
-        prepared = self.verifier.prepare(cloud)
-        self._prepared[scan_id] = prepared
-        if len(self._prepared) > PREPARED_CACHE:
-            self._prepared.popitem(last=False)
-        return prepared
+        return hit if hit is not None else self._prepared.put(scan_id, self.verifier.prepare(cloud))
 
     def verify_all(self, query: PreparedCloud, candidates: list[ScanMatch], clouds: Callable[[ScanMatch],
                    np.ndarray | None], *, lidar_T_cam: np.ndarray, errors: list[str] | None = None) -> list[ScanMatch]:
@@ -187,8 +187,8 @@ class SequenceVerifier:
         try:
             match = self._scan(candidate.id, cloud)
             yaw = math.radians(candidate.relative_yaw_deg)  # the camera looked along this direction of the scan
-            guess = match.bev(self.verifier.config).locate(query.xyz, yaw).matrix() if match.tree is not None \
-                else np.eye(4)
+            vcfg = self.verifier.config  # the query's BEV spectrum for this yaw is kept for its other candidates
+            guess = query.locate_in(match.bev(vcfg), yaw, vcfg).matrix() if match.tree is not None else np.eye(4)
             v = self.verifier.verify_prepared(query, match, initial_guess=guess)
             if v.reason in (ACCEPTED, "low overlap") and match.tree is not None:
                 share = query_overlap(query, match, v.match_T_query, self.verifier.config)
