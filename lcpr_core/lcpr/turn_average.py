@@ -35,11 +35,16 @@ ENTRY = "turn_average"  # the checkpoint key: True when the file's descriptors a
 TURNS = len(SLOT_YAWS_DEG) + 1  # the nuScenes rig's six camera slots: turns by 0 .. 5 slots
 
 
+def _require_rig(cameras: int, found: str) -> None:
+    """InputShapeError unless there are TURNS cameras; ``found`` says where the count came from ("... {} ...")."""
+    if cameras != TURNS:
+        raise InputShapeError(f"turn averaging needs the {TURNS}-camera rig its slot turns are defined for; "
+                              f"{found.format(cameras)} (set model.turn_average: false)")
+
+
 def turned_batch(images: torch.Tensor, ranges: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """B x C x 3 x H x W, B x 1 x h x w -> the same frames after each turn, turn-major: TURNS*B rows."""
-    if images.shape[1] != TURNS:
-        raise InputShapeError(f"turn averaging needs the {TURNS}-camera rig its slot turns are defined for; "
-                              f"got {images.shape[1]} cameras (set model.turn_average: false)")
+    _require_rig(images.shape[1], "got {} cameras")
     turned = [turn_inputs(images, ranges, k) for k in range(TURNS)]
     return torch.cat([t[0] for t in turned]), torch.cat([t[1] for t in turned])
 
@@ -62,9 +67,7 @@ class TurnedNetwork(nn.Module):
 
     def __init__(self, model: LCPR, *, turns: Sequence[int] = tuple(range(TURNS))) -> None:
         super().__init__()
-        if model.num_cameras != TURNS:
-            raise InputShapeError(f"turn averaging needs the {TURNS}-camera rig its slot turns are defined for; "
-                                  f"the network has {model.num_cameras} cameras (set model.turn_average: false)")
+        _require_rig(model.num_cameras, "the network has {} cameras")
         chosen = tuple(int(k) for k in turns)
         if not chosen or list(chosen) != sorted(set(chosen)) or not all(0 <= k < TURNS for k in chosen):
             raise InvalidValueError(f"turns={tuple(turns)}; accepted: ascending distinct turns out of 0 .. "
