@@ -93,11 +93,9 @@ def scan_context(points: np.ndarray, *, config: ScanContextConfig | None = None)
     azimuth = np.mod(np.arctan2(xyz[:, 1], xyz[:, 0]), 2.0 * np.pi)
     sector = np.minimum((azimuth * (cfg.num_sectors / (2.0 * np.pi))).astype(np.int64), cfg.num_sectors - 1)
     height = np.maximum(xyz[:, 2] + cfg.lidar_height, 0.0)
-    cell = ring * cfg.num_sectors + sector
-    order = np.lexsort((height, cell))  # by cell, then height: the last of each cell is its maximum
-    cell, height = cell[order], height[order]
-    last = np.r_[cell[1:] != cell[:-1], True]
-    out.reshape(-1)[cell[last]] = height[last]
+    top = np.zeros(cfg.num_rings * cfg.num_sectors)  # heights are >= 0: an empty bin stays 0
+    np.maximum.at(top, ring * cfg.num_sectors + sector, height)
+    out[:] = top.reshape(out.shape)  # float64 -> float32 after the maximum: the same as the maximum of the cast
     return out
 
 

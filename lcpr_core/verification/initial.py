@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry import wrap_angle
-from ..points import rotate_z
+from ..points import turn_cos_sin
 from ..scan_context import ScanContextConfig, scan_context
 
 SC_CONFIG = ScanContextConfig(num_rings=20, num_sectors=72, max_range=80.0, lidar_height=3.0)
@@ -79,15 +79,21 @@ def _shift_scores(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def bev_image(xyz: np.ndarray, *, cell: float, extent: float) -> np.ndarray:
     """G x G float32 height span (max z - min z) per cell, G = 2 * extent / cell, sensor at the centre."""
+    return _bev_image(xyz[:, 0], xyz[:, 1], xyz[:, 2], cell=cell, extent=extent)
+
+
+def _bev_image(x: np.ndarray, y: np.ndarray, z: np.ndarray, *, cell: float, extent: float) -> np.ndarray:
+    """:func:`bev_image` of the points' columns (one column at a time: fewer passes over the points)."""
     size = int(round(2.0 * extent / cell))
-    ij = np.floor((xyz[:, :2] + extent) / cell).astype(np.int64)
-    inside = ((ij >= 0) & (ij < size)).all(axis=1)
-    ij, z = ij[inside], xyz[inside, 2].astype(np.float64)
-    flat = ij[:, 0] * size + ij[:, 1]
+    i = np.floor((x + extent) / cell)  # whole numbers as floats: compared and combined exactly
+    j = np.floor((y + extent) / cell)
+    inside = (i >= 0) & (i < size) & (j >= 0) & (j < size)
+    flat = (i[inside] * size + j[inside]).astype(np.int64)
+    heights = z[inside].astype(np.float64)
     top = np.full(size * size, -np.inf)
     low = np.full(size * size, np.inf)
-    np.maximum.at(top, flat, z)
-    np.minimum.at(low, flat, z)
+    np.maximum.at(top, flat, heights)
+    np.minimum.at(low, flat, heights)
     span = np.where(np.isfinite(top), top - low, 0.0)
     return np.minimum(span, 3.0).reshape(size, size).astype(np.float32)
 
@@ -105,7 +111,7 @@ class BevMatcher:
         self._spectrum = np.fft.rfft2(image, s=(self._pad, self._pad))
         offsets = np.fft.fftfreq(self._pad, d=1.0 / self._pad).astype(np.int64)  # FFT index -> signed shift
         self._offsets = offsets
-        self._window = np.abs(offsets) <= reach
+        self._reach = np.flatnonzero(np.abs(offsets) <= reach)  # FFT indices of the shifts within +-reach
 
     @property
     def key(self) -> tuple[float, float, int]:
@@ -115,7 +121,11 @@ class BevMatcher:
     def query_spectrum(self, query_xyz: np.ndarray, yaw: float) -> tuple[np.ndarray, float]:
         """(conjugate spectrum, norm) of the query's view turned by ``yaw``: what :meth:`locate` needs of the
         query, the same for every match with this :attr:`key` (a query's candidates share it)."""
-        image = bev_image(rotate_z(query_xyz, math.degrees(yaw)), cell=self.cell, extent=self.extent)
+        x, y = query_xyz[:, 0], query_xyz[:, 1]
+        if yaw != 0.0:  # rotate_z's arithmetic on the two columns the view reads
+            c, s = turn_cos_sin(math.degrees(yaw))
+            x, y = c * x - s * y, s * x + c * y
+        image = _bev_image(x, y, query_xyz[:, 2], cell=self.cell, extent=self.extent)
         return np.conj(np.fft.rfft2(image, s=(self._pad, self._pad))), float(np.linalg.norm(image))
 
     def locate(self, query_xyz: np.ndarray, yaw: float, *,
@@ -127,8 +137,9 @@ class BevMatcher:
         if norm <= 0.0:
             return Hypothesis(yaw, 0.0, 0.0, 0.0)
         corr = np.fft.irfft2(self._spectrum * query_conj, s=(self._pad, self._pad))
-        corr = np.where(self._window[:, None] & self._window[None, :], corr, -np.inf)
-        i, j = np.unravel_index(int(np.argmax(corr)), corr.shape)
+        inside = corr[np.ix_(self._reach, self._reach)]  # the shifts within reach, in the same (row-major) order
+        a, b = np.unravel_index(int(np.argmax(inside)), inside.shape)
+        i, j = self._reach[a], self._reach[b]
         di, dj = int(self._offsets[i]), int(self._offsets[j])
         return Hypothesis(yaw, di * self.cell, dj * self.cell, float(max(corr[i, j], 0.0) / norm))
 
