@@ -156,7 +156,8 @@ def evaluate_verification(data: DriveData, net: Vseq2pcNet, *, verify: SequenceV
                   if data.valid[i] and len(data.frame_clouds[i])]
         checked: list[ScanMatch] = []
         if frames:
-            query = verifier.prepare_query(accumulate(frames, query_pose=data.poses[frame], config=vcfg.pseudo))
+            query = verifier.prepare_query(accumulate(frames, query_pose=data.poses[frame], config=vcfg.pseudo,
+                                                       lidar_T_cam=data.lidar_T_cam))
             checked = verifier.verify_all(query, found[: vcfg.top_k], lambda m: mapped.scan_clouds[m.row],
                                           lidar_T_cam=data.lidar_T_cam)
         seconds = time.perf_counter() - tic
