@@ -359,6 +359,7 @@ class LcprNode(NodeStats, Node):
         self._closed = True
         finish_and_save(self, self.worker, self.settings.node.map, self.save_map, timeout=SHUTDOWN_TIMEOUT,
                         what="places")
+        self.detector.close()  # verification worker processes, if any
 
 
 # -- executable -------------------------------------------------------------------------------

@@ -35,6 +35,15 @@ DOCS: dict[str, ParamDoc] = {
     "verify.registration": ParamDoc("small_gicp registration", choices=("GICP", "PLANE_ICP", "VGICP"),
                                     dynamic=True),
     "verify.num_threads": ParamDoc("registration threads", 1, 64, dynamic=True),
+    "verify.ambiguity_constraint": ParamDoc("translation constraint (0..1/3) under which a pair about to be "
+                                            "accepted is also registered from its other starts (0 = never)",
+                                            0.0, 1.0, dynamic=True),
+    "verify.ambiguity_ratio": ParamDoc("another pose reaching this share of the accepted fitness refuses the pair "
+                                       "as ambiguous", 0.01, 1.0, dynamic=True),
+    "verify.ambiguity_distance": ParamDoc("m: how far another pose must lie from the accepted one to count as an "
+                                          "alternative", 0.1, 1000.0, dynamic=True),
+    "verify.processes": ParamDoc("worker processes verifying a keyframe's candidates side by side (each keeps "
+                                 "its own prepared clouds); 0 = in the node's process", 0, 64, dynamic=True),
     "verify.cloud.voxel": ParamDoc("m, voxel size of the compact keyframe cloud kept in the map", 0.05, 5.0),
     "verify.cloud.max_points": ParamDoc("points kept per keyframe cloud (6 bytes each)", 100, 1_000_000),
     # ---- local submaps (lcpr_core.verification.submap): neighbours stitched by the odometry before verifying

@@ -193,12 +193,12 @@ def recording_detector(config: Any) -> Any:
             self.proposed["scan_context"] = [h.id for h in hits]
             return hits
 
-        def _prepared_cloud(self, keyframe_id: int, *args: Any, **kwargs: Any) -> Any:
+        def _prepared_cloud(self, ref: Any) -> Any:
+            keyframe_id = ref.key[1]  # the match keyframe (after the detector's token; the stitched ones follow)
             tic = time.perf_counter()
-            prepared = super()._prepared_cloud(keyframe_id, *args, **kwargs)
+            prepared = super()._prepared_cloud(ref)
             self.cost[keyframe_id] = self.cost.get(keyframe_id, 0.0) + time.perf_counter() - tic
-            if prepared is not None:
-                self._order.append(keyframe_id)
+            self._order.append(keyframe_id)
             return prepared
 
         def verified(self, seconds: float) -> None:  # called by TimedVerifier after each registration
@@ -244,6 +244,8 @@ class KeyframeMethods:
         config = DetectorConfig(model=ModelConfig(weights=BUNDLED, threads=threads),
                                 keyframe=KeyframeConfig(min_interval=0.0),
                                 match=MatchConfig(top_k=TOP_K, method="fused"))
+        # verified in this process: each candidate's registration is timed and charged to the method proposing it
+        config = dataclasses.replace(config, verify=dataclasses.replace(config.verify, processes=0))
         if submap is not None:  # submap.mode other than the node's default
             config = dataclasses.replace(config, submap=dataclasses.replace(config.submap, mode=submap))
         self.detector = recording_detector(config)

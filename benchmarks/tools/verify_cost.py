@@ -1,7 +1,7 @@
 """Cost of verifying one keyframe's candidates (the issue's "10 candidates <= 150 ms p50, 2 cores").
 
     python benchmarks/tools/verify_cost.py [--queries 30] [--candidates 10] [--frames 160] [--max-points N]
-                                           [--workers 2] [--set num_threads=2 ...]
+                                           [--workers 2] [--processes 2] [--set num_threads=2 ...]
                                            [--save VERDICTS.json] [--compare VERDICTS.json]
 
 A synthetic nuScenes-rig drive (city seed 3, 32-beam LiDAR, compact clouds capped at ``--max-points``).
@@ -11,11 +11,13 @@ near candidates are the ones that reach the fine stage. Per keyframe the time co
 preparing the query cloud and verifying every candidate; the candidates' clouds are
 prepared beforehand (the node caches 64 of them), and ``uncached`` adds preparing them too.
 ``--workers N`` also verifies the cached candidates over N threads (:meth:`GeometricVerifier.verify_all`),
-right after the same keyframe one by one (a fair comparison on a busy machine); every verdict of either is
+right after the same keyframe one by one (a fair comparison on a busy machine), and ``--processes N`` over N
+worker processes (:class:`~lcpr_core.verification.processes.VerifierProcesses`, what ``verify.processes`` runs in
+the node: each worker keeps its own prepared clouds, warmed by the first pass); every verdict of any of them is
 compared with the uncached pass's (they must be the same).
 ``--set NAME=VALUE`` overrides a numeric :class:`~lcpr_core.verification.VerifierConfig` field (to
-compare settings back to back). Prints medians and p90 on this CPU: wall time and the process's CPU time
-(all its threads; less sensitive to other jobs on a shared machine than the wall time).
+compare settings back to back). Prints medians and p90 on this CPU: wall time and the CPU time (this process's
+threads and the worker processes'; less sensitive to other jobs on a shared machine than the wall time).
 
 ``--save FILE`` writes every verdict (decision, reason, fitness, pose); ``--compare FILE`` checks this
 run's verdicts against such a file, candidate for candidate (e.g. before and after a change to the
@@ -50,6 +52,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--repeats", type=int, default=3, help="passes over the queries (the first one warms up)")
     p.add_argument("--max-points", type=int, default=None, help="compact cloud cap (default: CloudConfig's)")
     p.add_argument("--workers", type=int, default=1, help="threads verifying the cached candidates (default 1)")
+    p.add_argument("--processes", type=int, default=0,
+                   help="also time verification over this many worker processes (default 0: not)")
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                    help="override a numeric VerifierConfig field, e.g. overlap_points=0 (repeatable)")
     p.add_argument("--save", type=Path, default=None, help="write every verdict to this JSON file")
@@ -57,6 +61,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.workers < 1:
         raise SystemExit(f"--workers {args.workers}; accepted: an integer >= 1")
+    if args.processes < 0:
+        raise SystemExit(f"--processes {args.processes}; accepted: an integer >= 0")
 
     from concurrent.futures import ThreadPoolExecutor
     from dataclasses import replace
@@ -66,6 +72,7 @@ def main(argv: list[str] | None = None) -> int:
     from lcpr_core.atomic import write_atomic
     from lcpr_core.timing import cpu_model
     from lcpr_core.verification import GeometricVerifier, Verification, VerifierConfig
+    from lcpr_core.verification.processes import CloudRef, VerifierProcesses
     from lcpr_offline.verification_pairs import SyntheticLidar, synthetic_pairs
 
     seq = SyntheticLidar("nuscenes", 3, args.frames)
@@ -93,17 +100,29 @@ def main(argv: list[str] | None = None) -> int:
     verdicts: dict[tuple[int, int], Verification] = {}
     mismatches: list[str] = []
     pool = ThreadPoolExecutor(args.workers) if args.workers > 1 else None
+    processes = VerifierProcesses(config, processes=args.processes) if args.processes > 0 else None
+    if processes is not None:
+        timed[f"over {args.processes} processes"] = ([], [])
+    ref = lambda i: CloudRef(i, lambda: compact[i])  # noqa: E731 - a keyframe's cloud by its index
     try:
         for _ in tqdm(range(args.repeats), desc="passes"):
             for q, candidates in cases:
                 found: dict[str, list[Verification]] = {}
                 for name, (wall, cpu_time) in timed.items():  # back to back on the same keyframe
                     tic, cpu = time.perf_counter(), time.process_time()
-                    query = verifier.prepare(compact[q])
-                    found[name] = verifier.verify_all(query, [prepared[m] for m in candidates],
-                                                      pool=None if name == "one by one" else pool)
+                    if processes is not None:  # the workers' CPU time counts too
+                        cpu += processes.worker_cpu_seconds
+                    if name.endswith("processes"):
+                        assert processes is not None
+                        answers = processes.verify([(ref(q), ref(m)) for m in candidates])
+                        found[name] = [v for v in answers if isinstance(v, Verification)]
+                        assert len(found[name]) == len(candidates), answers
+                    else:
+                        query = verifier.prepare(compact[q])
+                        found[name] = verifier.verify_all(query, [prepared[m] for m in candidates],
+                                                          pool=None if name == "one by one" else pool)
                     wall.append(time.perf_counter() - tic)
-                    cpu_time.append(time.process_time() - cpu)
+                    cpu_time.append(time.process_time() - cpu + (processes.worker_cpu_seconds if processes else 0.0))
                 accepted.append(sum(v.accepted for v in found["one by one"]))
                 tic = time.perf_counter()
                 query = verifier.prepare(compact[q])
@@ -113,9 +132,14 @@ def main(argv: list[str] | None = None) -> int:
                         mismatches += _differences(f"{q}-{m} ({name} vs uncached)", _record(vs[k]), _record(alone))
                     verdicts[q, m] = alone
                 uncached.append(time.perf_counter() - tic)
+        if processes is not None:
+            peaks = [_peak_rss_mib(pid) for pid in processes.pids]
+            print(f"worker processes: peak resident memory {', '.join(f'{m:.0f}' for m in peaks)} MiB")
     finally:
         if pool is not None:
             pool.shutdown()
+        if processes is not None:
+            processes.close()
     skip = len(cases)  # the warm-up pass
     ms = lambda xs: f"p50 {1e3 * np.median(xs[skip:]):.1f} ms, p90 {1e3 * np.percentile(xs[skip:], 90):.1f} ms"  # noqa: E731
     print(f"CPU: {cpu_model()}, verifier threads {verifier.config.num_threads}; {len(cases)} keyframes x "
@@ -162,6 +186,17 @@ def _pose_check(verdicts: dict[tuple[int, int], Any], poses: np.ndarray) -> tupl
             wrong.append(f"{q}-{m}: {apart:.1f} m apart, pose off by {err_m:.2f} m / {err_deg:.1f} deg "
                          f"(fitness {v.fitness:.3f})")
     return right, wrong
+
+
+def _peak_rss_mib(pid: int) -> float:
+    """A process's peak resident memory (Linux /proc; NaN where it cannot be read)."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return float("nan")
 
 
 def _record(v: Any) -> dict[str, Any]:

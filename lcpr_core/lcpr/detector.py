@@ -37,9 +37,10 @@ neighbours on both sides; the two never share a keyframe. The map keeps each key
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Hashable, Sequence
 from dataclasses import dataclass, field
 from typing import TypedDict, cast
 
@@ -47,7 +48,7 @@ import numpy as np
 import torch
 
 from ..descriptor_map import DescriptorMap, MapConfig, Match
-from ..errors import InvalidValueError, MapSchemaError
+from ..errors import InvalidValueError, MapSchemaError, VerificationError
 from ..exclusion import matchable_prefix
 from ..keyframes import KeyframeConfig, keyframe_reason
 from ..pretrained import AUTO_DISTANCE, effective_max_distance, operating_threshold, resolve_weights
@@ -61,12 +62,14 @@ from ..verification import (
     Verification,
     VerifierConfig,
 )
+from ..verification.processes import CloudRef, VerifierProcesses, shared_processes
 from ..verification.submap import build_submap, submap_rows
 from .describer import Describer, ModelConfig
 from .preprocess.camera import CameraInput
 
 log = logging.getLogger(__name__)
 
+_DETECTOR_TOKENS = itertools.count()
 PREPARED_CACHE = 64  # prepared map clouds kept for the next queries (consecutive queries share candidates)
 #: match.method: what proposes the candidates (docs/lidar_only.md compares them on real LiDARs)
 MATCH_METHODS = ("lcpr", "scan_context", "fused")
@@ -207,6 +210,8 @@ class LoopDetector:
         self._last_position: np.ndarray | None = None
         self.verifier = GeometricVerifier(config.verify)
         self._prepared = PreparedCache(PREPARED_CACHE)  # by (centre id, ids stitched)
+        self._processes: VerifierProcesses | None = None  # with verify.processes > 0, from shared_processes
+        self._token = next(_DETECTOR_TOKENS)  # first element of its cloud keys: shared workers keep detectors apart
         self._submap_config = config.submap  # what the prepared clouds were stitched with
         self.weights_threshold = operating_threshold(resolve_weights(config.model.weights))  # the file's, or None
         self.scan_contexts = self._prior_scan_contexts() if config.match.method != "lcpr" else None  # row-aligned
@@ -346,55 +351,95 @@ class LoopDetector:
         """Each candidate with the verdict of registering the query cloud against the match's.
 
         A registration that raises makes that candidate "failed" and its cause is appended to ``errors``.
+        With ``verify.processes`` > 0 the pairs are verified over that many worker processes (the same verdicts).
         """
         if not candidates:
             return candidates
         if self.config.submap != self._submap_config:  # settings changed at run time
             self._submap_config = self.config.submap
             self._prepared.clear()
-        query_sub = self._submap(candidates[0].query_id, before_only=True)
+            self._close_processes()
+        query_id = candidates[0].query_id
+        query_sub = self._submap(query_id, before_only=True)
         first = None if query_sub is None else query_sub.rows[0]  # the query's own keyframes start here
-        query = self.verifier.prepare(compact if query_sub is None else query_sub.xyz)
-        scan_alone: PreparedCloud | None = None  # the query keyframe alone, prepared on first need
-        out = []
-        for c in candidates:
+        query = CloudRef((self._token, query_id, "submap"), lambda: compact if query_sub is None else query_sub.xyz)
+        scan_alone = CloudRef((self._token, query_id, "scan"), lambda: compact)  # pairs within the query's submap
+        pairs: list[tuple[int, CloudRef, CloudRef]] = []  # (candidate index, source, match)
+        out = list(candidates)
+        for k, c in enumerate(candidates):
             row = self.map.row_of(c.match_id)
-            if first is not None and row is not None and row >= first:  # a keyframe the query stitched:
-                if scan_alone is None:  # that pair is verified scan against scan
-                    scan_alone = self.verifier.prepare(compact)
-                source = scan_alone
-            else:
-                source = query
-            match = self._prepared_cloud(c.match_id, end=first)
+            stitched = first is not None and row is not None and row >= first  # a keyframe the query stitched:
+            match = self._match_cloud(c.match_id, end=first)  # that pair is verified scan against scan
             if match is None:
-                out.append(dataclasses.replace(c, verification="no cloud"))
-                continue
-            try:
-                v = self.verifier.verify_prepared(source, match)
-            except Exception as err:  # noqa: BLE001 - a bad pair must not cost the keyframe
+                out[k] = dataclasses.replace(c, verification="no cloud")
+            else:
+                pairs.append((k, scan_alone if stitched else query, match))
+        verdicts = self._verify_pairs([(source, match) for _, source, match in pairs], errors)
+        for (k, _, _), v in zip(pairs, verdicts, strict=True):
+            c = candidates[k]
+            if isinstance(v, Exception):  # a bad pair must not cost the keyframe
+                errors.append(f"verification of {c.query_id} against {c.match_id}: {type(v).__name__}: {v}")
                 v = Verification(False, "failed", np.eye(4), 0.0)
-                errors.append(f"verification of {c.query_id} against {c.match_id}: {type(err).__name__}: {err}")
-            out.append(dataclasses.replace(c, verified=v.accepted, fitness=v.fitness,
-                                           match_T_query=v.match_T_query, covariance=v.covariance,
-                                           verification=v.reason))
+            out[k] = dataclasses.replace(c, verified=v.accepted, fitness=v.fitness, match_T_query=v.match_T_query,
+                                         covariance=v.covariance, verification=v.reason)
         return out
 
-    def _prepared_cloud(self, keyframe_id: int, *, end: int | None) -> PreparedCloud | None:
-        """The match keyframe's prepared cloud (its submap when submaps apply; no row from ``end`` on, where the
-        query's own keyframes start: its cloud alone when it is one of them), from a small LRU cache keyed by
-        the keyframe (whose LiDAR frame the cloud is in) and the keyframes stitched: a hit stitches nothing."""
+    def _verify_pairs(self, pairs: list[tuple[CloudRef, CloudRef]], errors: list[str]
+                      ) -> list[Verification | Exception]:
+        """(source, match) pairs' verdicts, an exception in the place of a pair that raised: over the worker
+        processes when ``verify.processes`` asks for them, else here with the cache of prepared match clouds."""
+        wanted = self.config.verify.processes
+        if wanted > 0 and pairs:
+            if self._processes is None or self._processes.config != self.config.verify:
+                self._processes = shared_processes(self.config.verify, processes=wanted, cache=PREPARED_CACHE)
+            before = self._processes.fallbacks
+            verdicts = self._processes.verify(pairs)
+            if self._processes.fallbacks > before:
+                errors.append(f"a verification worker process failed: {self._processes.fallbacks - before} pairs were "
+                              f"verified in the detector's process instead (verify.processes={wanted})")
+            return verdicts
+        self._close_processes()
+        sources: dict[Hashable, PreparedCloud] = {}
+        out: list[Verification | Exception] = []
+        for source_ref, match_ref in pairs:
+            try:
+                source = sources.get(source_ref.key)
+                if source is None:
+                    source = sources[source_ref.key] = self.verifier.prepare(source_ref.load())
+                match = self._prepared_cloud(match_ref)
+                out.append(self.verifier.verify_prepared(source, match))
+            except Exception as err:  # noqa: BLE001 - returned in the pair's place
+                out.append(err)
+        return out
+
+    def _prepared_cloud(self, ref: CloudRef) -> PreparedCloud:
+        """A match cloud prepared, from the small LRU cache of prepared clouds (a hit stitches nothing)."""
+        cached = self._prepared.get(ref.key)
+        return cached if cached is not None else self._prepared.put(ref.key, self.verifier.prepare(ref.load()))
+
+    def _close_processes(self) -> None:
+        self._processes = None  # shared: its workers stop when no detector holds it and another replaced it
+
+    def close(self) -> None:
+        """Let go of the verification worker processes (they stop once no detector uses them)."""
+        self._close_processes()
+
+    def _match_cloud(self, keyframe_id: int, *, end: int | None) -> CloudRef | None:
+        """The match keyframe's cloud by key (its submap when submaps apply; no row from ``end`` on, where the
+        query's own keyframes start: its cloud alone when it is one of them), keyed by the keyframe (whose LiDAR
+        frame the cloud is in) and the keyframes stitched: a cache hit stitches nothing. None without a cloud."""
         window = self._submap_window(keyframe_id, before_only=False, end=end)
         if window is None:
             return None
         lo, rows = window[0], window[1]
-        key = (int(keyframe_id), *(int(i) for i in self.map.ids[[lo + r for r in rows]]))
-        cached = self._prepared.get(key)
-        if cached is not None:
-            return cached
-        sub = self._submap(keyframe_id, before_only=False, end=end, window=window)
-        if sub is None:
-            return None
-        return self._prepared.put(key, self.verifier.prepare(sub.xyz))
+        key = (self._token, int(keyframe_id), *(int(i) for i in self.map.ids[[lo + r for r in rows]]))
+
+        def load() -> np.ndarray:
+            sub = self._submap(keyframe_id, before_only=False, end=end, window=window)
+            if sub is None:
+                raise VerificationError(f"keyframe {keyframe_id} has no cloud")
+            return sub.xyz
+        return CloudRef(key, load)
 
     def _submap(self, keyframe_id: int, *, before_only: bool, end: int | None = None,
                 window: tuple[int, tuple[int, ...], _SubmapArgs] | None = None) -> Submap | None:

@@ -67,7 +67,12 @@ class VerifierConfig:
       repetitive scene); how far the coarse stage travelled from it is not judged;
     - the registration is well constrained: the smallest eigenvalue of the point-to-plane
       information of the inliers (translation and rotation blocks, normalised; 0..1/3) is
-      at least ``min_constraint`` (a plane, a corridor, a sphere shell give ~0).
+      at least ``min_constraint`` (a plane, a corridor, a sphere shell give ~0);
+    - the pose is not ambiguous: when the translation block alone has a smallest eigenvalue
+      under ``ambiguity_constraint`` (a street whose walls run along it constrains the pose across
+      the street only), the best result of the other starts is refined too, and a pose more than
+      ``ambiguity_distance`` away that reaches ``ambiguity_ratio`` x the fitness refuses the pair
+      (the clouds could slide along the street onto a wrong pose that fits about as well).
 
     Thresholds default to values chosen on validation drives (see benchmarks/recipes/verify_tune.py),
     never on the drives docs/verification.md reports as held out.
@@ -77,6 +82,7 @@ class VerifierConfig:
     cloud: CloudConfig = field(default_factory=CloudConfig)
     registration: str = "GICP"
     num_threads: int = 1  # OpenMP threads of small_gicp; 1 is fastest beside the network on 2 cores
+    processes: int = 2  # worker processes verifying a keyframe's candidates side by side (0: in the caller's)
     min_points: int = 200  # fewer points (after downsampling) in either cloud: not verifiable
     # initial guess
     yaw_hypotheses: int = 4  # Scan Context shifts tried
@@ -115,6 +121,13 @@ class VerifierConfig:
     max_correction_m: float = 1.0  # fine vs coarse pose; validation true pairs moved <= 0.7 m, 1.7 deg
     max_correction_deg: float = 5.0
     min_constraint: float = 0.02  # 0..1/3 point-to-plane observability (verify_tune.py); a plane, a sphere ~0
+    # ambiguity (docs/verification.md; chosen on the validation city seed 3 and the Livox validation halves): a pair
+    # about to be accepted whose translation part of the constraint is under ambiguity_constraint (0: never) is
+    # registered from its other starts too; another pose more than ambiguity_distance m away reaching
+    # ambiguity_ratio x its fitness refuses it ("ambiguous": the clouds slide along a street or a corridor)
+    ambiguity_constraint: float = 0.06
+    ambiguity_ratio: float = 0.6
+    ambiguity_distance: float = 5.0
     # covariance: inv(Hessian) * residual variance factor * inflation, floored per axis
     covariance_inflation: float = 10.0
     min_sigma_m: float = 0.02
@@ -126,13 +139,18 @@ class VerifierConfig:
         _positive(self, "num_threads", "min_points", "yaw_hypotheses", "bev_cell", "bev_extent", "registrations",
                   "coarse_voxel", "coarse_points", "fine_points", "coarse_distance", "fine_distance",
                   "coarse_iterations", "max_iterations", "inlier_distance", "plane_distance", "max_rmse",
-                  "max_correction_m", "max_correction_deg", "covariance_inflation")
-        _non_negative(self, "coarse_accept", "early_reject", "min_constraint", "min_sigma_m", "min_sigma_deg",
+                  "max_correction_m", "max_correction_deg", "covariance_inflation", "ambiguity_distance",
+                  "ambiguity_ratio")
+        _non_negative(self, "coarse_accept", "early_reject", "min_constraint", "ambiguity_constraint",
+                      "min_sigma_m", "min_sigma_deg",
                       "coarse_epsilon_m", "coarse_epsilon_deg", "overlap_recheck")
         for name in ("overlap_points", "coarse_overlap_points", "bev_points"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise VerificationError(f"verify.{name}={value!r}; accepted: an integer >= 0 (0: every point)")
+        if isinstance(self.processes, bool) or not isinstance(self.processes, int) or not 0 <= self.processes <= 64:
+            raise VerificationError(f"verify.processes={self.processes!r}; accepted: an integer 0..64 (0: verify in "
+                                    "the detector's own process)")
         if not 0.0 <= self.min_fitness <= 1.0:
             raise VerificationError(f"verify.min_fitness={self.min_fitness!r}; accepted: 0 <= min_fitness <= 1")
         if self.bev_extent / self.bev_cell > 1024:

@@ -36,7 +36,7 @@ from .initial import BevMatcher, Hypothesis, polar_context, yaw_candidates
 
 ACCEPTED = "accepted"
 REJECT_REASONS: tuple[str, ...] = (
-    "too few points", "low overlap", "high residual", "large correction", "degenerate", "failed",
+    "too few points", "low overlap", "high residual", "large correction", "degenerate", "ambiguous", "failed",
 )
 _ROS_ORDER = [3, 4, 5, 0, 1, 2]  # small_gicp's (rotation, translation) tangent -> (x, y, z, roll, pitch, yaw)
 _NEIGHBOURS = 10
@@ -131,6 +131,9 @@ class Verification:
     correction_m: float = math.nan  # how far the fine stage moved from the coarse pose it started from
     correction_deg: float = math.nan
     constraint: float = 0.0  # point-to-plane observability of the inliers, 0 (degenerate) .. 1/3 (_constraint)
+    translation_constraint: float = 0.0  # its translation part alone, 0 .. 1/3 (gates the "ambiguous" test)
+    # fitness of the best other pose (> ambiguity_distance away) when the ambiguity test ran, else nan
+    alternative_fitness: float = math.nan
     initial: np.ndarray = field(default_factory=lambda: np.eye(4))  # the initial guess the result came from
     coarse_fitness: float = 0.0  # overlap estimated at the best coarse pose (the early-reject test)
     seconds: float = 0.0
@@ -152,6 +155,7 @@ class _Registered:
     initial: np.ndarray
     coarse: np.ndarray  # the coarse stage's pose the fine stage started from
     constraint: float  # see _constraint
+    translation_constraint: float
 
 
 class GeometricVerifier:
@@ -236,7 +240,35 @@ class GeometricVerifier:
                                 coarse_fitness=early, seconds=time.perf_counter() - tic)
         best = self._fine(query, match, coarse[0][1], coarse[0][2])
         verdict = self._judge(best)
+        if verdict.accepted and best.translation_constraint < cfg.ambiguity_constraint:
+            other = self._alternative(query, match, coarse, best.T)
+            verdict = replace(verdict, alternative_fitness=other)
+            if other >= cfg.ambiguity_ratio * best.fitness:
+                verdict = replace(verdict, accepted=False, reason="ambiguous")
         return replace(verdict, coarse_fitness=early, seconds=time.perf_counter() - tic)
+
+    def _alternative(self, query: PreparedCloud, match: PreparedCloud,
+                     coarse: list[tuple[float, np.ndarray, np.ndarray]], T: np.ndarray) -> float:
+        """Fitness of the best pose more than ``ambiguity_distance`` from ``T`` that registration reaches from the
+        other starts (0 when none does): a weakly constrained translation may have slid onto a look-alike.
+
+        The starts that the search over starts skipped (and, after an initial guess, the usual starts) are
+        registered at the coarse level; the best of the results far from ``T`` is refined like the result was.
+        """
+        cfg = self.config
+        tried = [c[2] for c in coarse]
+        for T0 in self.starts(query, match):
+            if not any(np.array_equal(T0, earlier) for earlier in tried):
+                coarse = [*coarse, self._coarse(query, match, T0)]
+                tried.append(T0)
+        far = [c for c in coarse if c[0] > 0.0 and _distance(c[1], T) > cfg.ambiguity_distance]
+        if not far:
+            return 0.0
+        found = max(far, key=lambda c: c[0])
+        other = self._fine(query, match, found[1], found[2])
+        if not np.isfinite(other.T).all() or _distance(other.T, T) <= cfg.ambiguity_distance:
+            return 0.0  # it came back to the result
+        return other.fitness
 
     def verify_all(self, query: PreparedCloud, matches: Sequence[PreparedCloud], *,
                    pool: Executor | None = None) -> list[Verification]:
@@ -289,18 +321,19 @@ class GeometricVerifier:
                                 registration_type=cfg.registration, num_threads=cfg.num_threads,
                                 max_iterations=cfg.max_iterations, max_correspondence_distance=cfg.fine_distance)
         T = np.asarray(fine.T_target_source, np.float64)
-        fitness, rmse, constraint = 0.0, math.inf, 0.0
+        fitness, rmse, constraint = 0.0, math.inf, (0.0, 0.0)
         if np.isfinite(T).all():
             fitness, rmse, constraint = self._evidence(query, match, T, cfg.overlap_points)
             sampled = max(_stride(len(query), cfg.overlap_points), _stride(len(match), cfg.overlap_points)) > 1
             if sampled and abs(fitness - cfg.min_fitness) < cfg.overlap_recheck:  # borderline: read every point
                 fitness, rmse, constraint = self._evidence(query, match, T, 0)
         return _Registered(T, fitness, rmse, np.asarray(fine.H, np.float64), float(fine.error), int(fine.num_inliers),
-                           T0, start, constraint)
+                           T0, start, min(constraint), constraint[0])
 
     def _evidence(self, query: PreparedCloud, match: PreparedCloud, T: np.ndarray, points: int
-                  ) -> tuple[float, float, float]:
-        """(overlap, RMSE, constraint) at ``T`` from samples of about ``points`` points (0: every point)."""
+                  ) -> tuple[float, float, tuple[float, float]]:
+        """(overlap, RMSE, (translation, rotation) constraint) at ``T`` from samples of about ``points`` points
+        (0: every point)."""
         cfg = self.config
         q_in_m = transform_points(query.xyz[::_stride(len(query), points)], T)
         idx, near = _near(q_in_m, match, cfg)  # one search: the overlap and the constraint share it
@@ -340,7 +373,8 @@ class GeometricVerifier:
         covariance = self._covariance(best)
         common: dict[str, Any] = dict(
             match_T_query=best.T, fitness=best.fitness, rmse=best.rmse, covariance=covariance,
-            correction_m=correction_m, correction_deg=correction_deg, constraint=constraint, initial=best.initial)
+            correction_m=correction_m, correction_deg=correction_deg, constraint=constraint,
+            translation_constraint=best.translation_constraint, initial=best.initial)
         reason = ACCEPTED
         if not np.isfinite(best.T).all():
             reason = "failed"
@@ -372,6 +406,11 @@ class GeometricVerifier:
         return cov + np.diag(bump)
 
 
+def _distance(a: np.ndarray, b: np.ndarray) -> float:
+    """m between the translations of two 4 x 4 poses."""
+    return float(np.linalg.norm(a[:3, 3] - b[:3, 3]))
+
+
 def _stride(count: int, points: int, least: int = 1) -> int:
     """Every k-th of ``count`` points leaves at most about ``points`` (0: all), k >= ``least``."""
     return max(least, -(-count // points) if points > 0 else 1)
@@ -399,8 +438,9 @@ def _inliers(points: np.ndarray, idx: np.ndarray, near: np.ndarray, target: Prep
     return float(good.sum()) / max(len(points), 1), plane[good]
 
 
-def _constraint(points: np.ndarray, normals: np.ndarray) -> float:
-    """How well aligned points and their neighbours' normals pin down all six degrees of freedom, 0 .. 1/3.
+def _constraint(points: np.ndarray, normals: np.ndarray) -> tuple[float, float]:
+    """How well aligned points and their neighbours' normals pin down the translation and the rotation,
+    (translation, rotation), each 0 .. 1/3.
 
     Point-to-plane analysis: with n the neighbour's normal and p the point (centred on
     the points' centroid, scaled by their RMS radius), the smallest eigenvalue of
@@ -408,12 +448,12 @@ def _constraint(points: np.ndarray, normals: np.ndarray) -> float:
     translation free, a sphere shell or a cylinder a rotation: both give ~0.
     """
     if len(points) < 6:
-        return 0.0
+        return 0.0, 0.0
     p = points - points.mean(axis=0)
     p /= max(float(np.sqrt((p ** 2).sum(axis=1).mean())), 1e-9)
     pn = np.cross(p, normals)
-    return float(min(np.linalg.eigvalsh(normals.T @ normals / len(normals)).min(),
-                     np.linalg.eigvalsh(pn.T @ pn / len(normals)).min()))
+    return (float(np.linalg.eigvalsh(normals.T @ normals / len(normals)).min()),
+            float(np.linalg.eigvalsh(pn.T @ pn / len(normals)).min()))
 
 
 def _rigid(guess: object) -> np.ndarray:

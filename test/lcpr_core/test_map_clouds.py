@@ -1,6 +1,7 @@
 """Keyframe clouds: compacted, kept in the descriptor map, saved with it, and used by the detector to verify loops."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 from typing import Any, cast
@@ -14,6 +15,7 @@ from lcpr_core.errors import MapError, VerificationError
 from lcpr_core.lcpr.describer import Describer, Prepared
 from lcpr_core.lcpr.detector import DetectorConfig, Frame, LoopDetector, MatchConfig
 from lcpr_core.verification import REJECT_REASONS, CloudConfig, CloudStore, VerifierConfig, compact_cloud
+from lcpr_core.verification.processes import CloudRef
 
 CONFIG = VerifierConfig(num_threads=1)  # see test_verification.CONFIG
 DIM = 16
@@ -322,15 +324,23 @@ def test_a_map_from_a_session_without_verification_gives_no_cloud_and_no_loop(tm
     assert result.loop is None
 
 
-def test_a_registration_that_raises_fails_that_candidate_keeps_the_keyframe_and_says_why(worlds, monkeypatch):
-    det = make_detector()
+@pytest.mark.parametrize("processes", [0, 2])
+def test_a_registration_that_raises_fails_that_candidate_keeps_the_keyframe_and_says_why(worlds, monkeypatch,
+                                                                                       processes):
+    det = make_detector(dataclasses.replace(CONFIG, processes=processes))
     for f in first_session(worlds):
         det.process(f)
 
     def broken(query, match, **options):
         raise RuntimeError("registration blew up")
 
-    monkeypatch.setattr(det.verifier, "verify_prepared", broken)
+    def lost(*args: Any, **kwargs: Any) -> CloudRef:  # over worker processes: the match cloud cannot be had
+        def load() -> np.ndarray:
+            raise RuntimeError("registration blew up")
+        return CloudRef(("lost", args), load)
+
+    monkeypatch.setattr(det.verifier, "verify_prepared", broken)  # in this process
+    monkeypatch.setattr(det, "_match_cloud", lost)
     result = det.process(revisit(worlds, 40.0))
     assert result.keyframe_id == 2 and len(det.map) == 3 and len(det.map.clouds) == 3
     assert [c.verification for c in result.candidates] == ["failed", "failed"] and result.loop is None

@@ -2,6 +2,7 @@
 one scan cannot verify."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import re
@@ -221,7 +222,7 @@ def test_a_pose_that_is_not_rigid_is_refused_by_the_map_and_kept_as_a_position_b
 
 
 # ---------------------------------------------------------------------- the detector
-VERIFY = VerifierConfig(num_threads=1)  # see test_verification.CONFIG
+VERIFY = VerifierConfig(num_threads=1, processes=0)  # see test_verification.CONFIG; in-process: tests read its cache
 FIRST_VISIT = [pose(0.3 * i, 0.0, 45.0 * i) for i in range(5)]  # walking on x while turning from 0 to 180 deg
 RETURN = [pose(0.5, 0.8, 100.0), pose(0.6, 0.5, 50.0), pose(0.7, 0.3, 5.0)]  # back, turning the other way
 
@@ -231,14 +232,14 @@ def narrow_frame(t: float, key: str, world: np.ndarray, world_T_base: np.ndarray
     return Frame(stamp=t, images=images, points=narrow(view(world, world_T_base, seed=seed)), pose=world_T_base)
 
 
-def narrow_revisit(submap: SubmapConfig) -> tuple[LoopDetector, Any]:
+def narrow_revisit(submap: SubmapConfig, verify: VerifierConfig = VERIFY) -> tuple[LoopDetector, Any]:
     """A 70 deg sensor: the first visit turns through 180 deg; the return's last keyframe looks along x (as the
     first visit's first keyframe did) and its descriptor names the first visit's middle keyframe, which looked
     along y: a single scan of each shares nothing."""
     rng = np.random.default_rng(5)
     keys = [f"k{i}" for i in range(5)] + ["q0", "q1"]
     table = {k: (v / np.linalg.norm(v)).astype(np.float32) for k in keys for v in [rng.normal(size=256)]}
-    det = LoopDetector(DetectorConfig(match=MatchConfig(max_distance=1.0), verify=VERIFY, submap=submap),
+    det = LoopDetector(DetectorConfig(match=MatchConfig(max_distance=1.0), verify=verify, submap=submap),
                        describer=cast(Describer, KeyedDescriber(table)))
     world = scene(1)
     for i, T in enumerate(FIRST_VISIT):
@@ -261,7 +262,22 @@ def test_the_detector_with_submaps_verifies_a_narrow_field_revisit_that_a_single
     assert loop is not None and loop.match_id == 2 and loop.query_id == 7
     err_m, err_deg = pose_error(loop.match_T_query, np.linalg.inv(FIRST_VISIT[2]) @ RETURN[2])
     assert err_m <= 0.05 and err_deg <= 0.5, (err_m, err_deg)
-    assert list(det._prepared) == [(2, 0, 1, 2, 3, 4)]  # cached by its centre (its frame) and what it stitches
+    assert list(det._prepared) == [(det._token, 2, 0, 1, 2, 3, 4)]  # by its centre (its frame) and what it stitches
+
+
+def test_verifying_over_worker_processes_gives_the_detector_the_same_loop_and_verdicts():
+    _, here = narrow_revisit(SubmapConfig(lidar_xyz=MOUNT))
+    det, over = narrow_revisit(SubmapConfig(lidar_xyz=MOUNT), verify=dataclasses.replace(VERIFY, processes=2))
+    try:
+        assert det._processes is not None and det._processes.fallbacks == 0 and not det._prepared
+        assert over.loop is not None and here.loop is not None and over.loop.match_id == here.loop.match_id
+        for a, b in zip(here.candidates, over.candidates, strict=True):
+            assert (a.match_id, a.verified, a.verification, a.fitness) == (b.match_id, b.verified, b.verification,
+                                                                          b.fitness)
+            assert np.array_equal(a.match_T_query, b.match_T_query) and np.array_equal(a.covariance, b.covariance)
+    finally:
+        det.close()
+    assert det._processes is None
 
 
 def test_a_full_field_of_view_is_verified_scan_against_scan_under_auto():
@@ -273,8 +289,10 @@ def test_a_full_field_of_view_is_verified_scan_against_scan_under_auto():
 
 def test_two_matches_that_stitch_the_same_keyframes_keep_their_own_frames():
     det, _ = narrow_revisit(SubmapConfig(lidar_xyz=MOUNT))
-    around_1, around_2 = det._prepared_cloud(1, end=5), det._prepared_cloud(2, end=5)  # both stitch rows 0-4
-    assert around_1 is not None and around_2 is not None and around_1 is not around_2
+    refs = det._match_cloud(1, end=5), det._match_cloud(2, end=5)  # both stitch rows 0-4
+    assert refs[0] is not None and refs[1] is not None and refs[0].key != refs[1].key
+    around_1, around_2 = det._prepared_cloud(refs[0]), det._prepared_cloud(refs[1])
+    assert around_1 is not around_2
     lidar = [T @ SubmapConfig(lidar_xyz=MOUNT).base_T_lidar() for T in FIRST_VISIT]
     two_T_one = np.linalg.inv(lidar[2]) @ lidar[1]
     sample = around_1.xyz[::10]
