@@ -29,30 +29,16 @@ LENGTH = 240.0  # m of street
 
 def street(seed: int) -> np.ndarray:
     """N x 3 world points of the street (see the module docstring)."""
-    rng = np.random.default_rng(seed)
-    ground = int(LENGTH * 128)
-    parts = [np.c_[rng.uniform(-LENGTH / 2, LENGTH / 2, ground), rng.uniform(-8, 8, ground), np.zeros(ground)]]
-    wall = int(LENGTH * 60)
-    for y in (-8.0, 8.0):
-        parts.append(np.c_[rng.uniform(-LENGTH / 2, LENGTH / 2, wall), np.full(wall, y), rng.uniform(0, 6, wall)])
-    for x in rng.uniform(-LENGTH / 2, LENGTH / 2, 56):  # poles
-        y, angle = rng.choice((-6.0, 6.0)), rng.uniform(0, 2 * math.pi, 150)
-        parts.append(np.c_[x + 0.25 * np.cos(angle), y + 0.25 * np.sin(angle), rng.uniform(0, 5, 150)])
-    for x in rng.uniform(-LENGTH / 2, LENGTH / 2, 28):  # boxes by the walls
-        u, face = rng.uniform(-1, 1, (300, 3)), rng.integers(0, 5, 300)
-        for f, (axis, side) in enumerate(((0, 1), (0, -1), (1, 1), (1, -1), (2, 1))):
-            u[face == f, axis] = side
-        parts.append(np.c_[x + u[:, 0], rng.choice((-7.0, 7.0)) + 0.8 * u[:, 1], u[:, 2] + 1.0])
-    return np.concatenate(parts)
+    from lcpr_offline.synthetic_scenes import straight_street
+
+    return straight_street(seed, length=LENGTH)
 
 
 def view(world: np.ndarray, x: float, y: float, yaw_deg: float, seed: int) -> np.ndarray:
     """M x 3: what a sensor 1.8 m above (x, y), turned by yaw, sees within 40 m (its own 85 %, 1 cm noise)."""
-    rng = np.random.default_rng(seed)
-    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
-    local = (world - (x, y, 1.8)) @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    local = local[(np.linalg.norm(local, axis=1) < 40.0) & (rng.random(len(local)) < 0.85)]
-    return local + rng.normal(0.0, 0.01, local.shape)
+    from lcpr_offline.synthetic_scenes import sensor_view
+
+    return sensor_view(world, x, y, yaw_deg, seed=seed, reach=40.0)
 
 
 def planar(x: float, y: float, yaw_deg: float) -> np.ndarray:

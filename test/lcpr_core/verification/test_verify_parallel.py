@@ -8,31 +8,13 @@ import numpy as np
 import pytest
 
 from lcpr_core.verification import GeometricVerifier, PreparedCloud, VerifierConfig
+from lcpr_offline.synthetic_scenes import scattered_world, sensor_view
 
 CONFIG = VerifierConfig(num_threads=1)
 
 
-def _world(seed: int) -> np.ndarray:
-    """N x 3 world points: ground, 10 walls and 20 poles scattered over 80 x 80 m."""
-    rng = np.random.default_rng(seed)
-    parts = [np.c_[rng.uniform(-40, 40, (4000, 2)), np.zeros(4000)]]
-    for _ in range(10):
-        (cx, cy), heading = rng.uniform(-30, 30, 2), rng.uniform(0, math.pi)
-        s, z = rng.uniform(-10, 10, 800), rng.uniform(0, rng.uniform(3, 8), 800)
-        parts.append(np.c_[cx + s * math.cos(heading), cy + s * math.sin(heading), z])
-    for _ in range(20):
-        (cx, cy), angle = rng.uniform(-35, 35, 2), rng.uniform(0, 2 * math.pi, 150)
-        parts.append(np.c_[cx + 0.2 * np.cos(angle), cy + 0.2 * np.sin(angle), rng.uniform(0, 5, 150)])
-    return np.concatenate(parts)
-
-
-def _view(world: np.ndarray, x: float, y: float, yaw_deg: float, seed: int) -> np.ndarray:
-    """M x 3: the points within 50 m of a sensor 1.8 m above (x, y) turned by yaw, in its frame, 1 cm noise."""
-    rng = np.random.default_rng(seed)
-    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
-    local = (world - (x, y, 1.8)) @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    local = local[(np.linalg.norm(local, axis=1) < 50.0) & (rng.random(len(local)) < 0.85)]
-    return local + rng.normal(0.0, 0.01, local.shape)
+def _seen(world: np.ndarray, x: float, y: float, yaw_deg: float, seed: int) -> np.ndarray:
+    return sensor_view(world, x, y, yaw_deg, seed=seed)
 
 
 @pytest.fixture(scope="module")
@@ -43,15 +25,15 @@ def verifier() -> GeometricVerifier:
 @pytest.fixture(scope="module")
 def keyframe(verifier) -> tuple[PreparedCloud, list[PreparedCloud]]:
     """A query and 6 candidates: 3 views of its place (moved, turned) and 3 views of other worlds."""
-    world = _world(1)
-    query = verifier.prepare(verifier.compact(_view(world, 0.0, 0.0, 0.0, seed=10)))
-    near = [_view(world, dx, dy, yaw, seed=20 + k) for k, (dx, dy, yaw) in
+    world = scattered_world(1)
+    query = verifier.prepare(verifier.compact(_seen(world, 0.0, 0.0, 0.0, seed=10)))
+    near = [_seen(world, dx, dy, yaw, seed=20 + k) for k, (dx, dy, yaw) in
             enumerate(((1.5, -1.0, 10.0), (-2.0, 2.0, 90.0), (3.0, 0.5, -30.0)))]
-    far = [_view(_world(5 + k), 0.0, 0.0, 0.0, seed=30 + k) for k in range(3)]
+    far = [_seen(scattered_world(5 + k), 0.0, 0.0, 0.0, seed=30 + k) for k in range(3)]
     return query, [verifier.prepare(verifier.compact(c)) for c in near + far]
 
 
-def _same(a: object, b: object) -> bool:
+def same_verdict(a: object, b: object) -> bool:
     """Whether two verdicts agree field for field (arrays exactly, NaN equal to NaN)."""
     for name in ("accepted", "reason", "fitness", "rmse", "constraint", "coarse_fitness"):
         x, y = getattr(a, name), getattr(b, name)
@@ -69,10 +51,10 @@ def test_verifying_candidates_over_two_threads_gives_the_verdicts_and_poses_of_o
         for _ in range(3):  # threads interleave differently each time
             threaded = verifier.verify_all(query, matches, pool=pool)
             assert len(threaded) == len(matches)
-            assert all(_same(a, b) for a, b in zip(alone, threaded, strict=True)), [(a.reason, b.reason)
+            assert all(same_verdict(a, b) for a, b in zip(alone, threaded, strict=True)), [(a.reason, b.reason)
                                                                       for a, b in zip(alone, threaded, strict=True)]
     one_by_one = verifier.verify_all(query, matches)  # no pool
-    assert all(_same(a, b) for a, b in zip(alone, one_by_one, strict=True))
+    assert all(same_verdict(a, b) for a, b in zip(alone, one_by_one, strict=True))
 
 
 def test_a_start_equal_to_an_earlier_one_is_registered_once_with_the_same_verdict(verifier, keyframe, monkeypatch):
@@ -91,4 +73,4 @@ def test_a_start_equal_to_an_earlier_one_is_registered_once_with_the_same_verdic
     monkeypatch.setattr(GeometricVerifier, "starts", lambda self, q, m: [np.eye(4), np.eye(4), np.eye(4)])
     repeated = verifier.verify_prepared(query, stranger)
     assert len(calls) == 1
-    assert _same(once, repeated) and not repeated.accepted
+    assert same_verdict(once, repeated) and not repeated.accepted

@@ -1,7 +1,6 @@
 """Candidates verified over worker processes: the same verdicts as in one process, clouds sent once, failures kept."""
 from __future__ import annotations
 
-import math
 import multiprocessing
 import subprocess
 import sys
@@ -9,46 +8,30 @@ import threading
 
 import numpy as np
 import pytest
+from test_verify_parallel import same_verdict
 
 from lcpr_core.errors import VerificationError
 from lcpr_core.verification import GeometricVerifier, Verification, VerifierConfig
 from lcpr_core.verification.processes import CloudRef, VerifierProcesses, _serve, shared_processes
+from lcpr_offline.synthetic_scenes import scattered_world, sensor_view
 
 CONFIG = VerifierConfig(num_threads=1)
 
 
-def _world(seed: int) -> np.ndarray:
-    """N x 3 world points: ground, 10 walls and 20 poles scattered over 80 x 80 m."""
-    rng = np.random.default_rng(seed)
-    parts = [np.c_[rng.uniform(-40, 40, (4000, 2)), np.zeros(4000)]]
-    for _ in range(10):
-        (cx, cy), heading = rng.uniform(-30, 30, 2), rng.uniform(0, math.pi)
-        s, z = rng.uniform(-10, 10, 800), rng.uniform(0, rng.uniform(3, 8), 800)
-        parts.append(np.c_[cx + s * math.cos(heading), cy + s * math.sin(heading), z])
-    for _ in range(20):
-        (cx, cy), angle = rng.uniform(-35, 35, 2), rng.uniform(0, 2 * math.pi, 150)
-        parts.append(np.c_[cx + 0.2 * np.cos(angle), cy + 0.2 * np.sin(angle), rng.uniform(0, 5, 150)])
-    return np.concatenate(parts)
-
-
 def _view(world: np.ndarray, x: float, y: float, yaw_deg: float, seed: int) -> np.ndarray:
-    """M x 3 compact cloud: the points within 50 m of a sensor 1.8 m above (x, y) turned by yaw, 1 cm noise."""
-    rng = np.random.default_rng(seed)
-    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
-    local = (world - (x, y, 1.8)) @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    local = local[(np.linalg.norm(local, axis=1) < 50.0) & (rng.random(len(local)) < 0.85)]
-    return GeometricVerifier(CONFIG).compact(local + rng.normal(0.0, 0.01, local.shape))
+    """M x 3 compact cloud of what a sensor at (x, y) turned by yaw sees."""
+    return GeometricVerifier(CONFIG).compact(sensor_view(world, x, y, yaw_deg, seed=seed))
 
 
 @pytest.fixture(scope="module")
 def clouds() -> dict[str, np.ndarray]:
     """A query, 3 views of its place (moved, turned) and 2 views of other worlds."""
-    world = _world(1)
+    world = scattered_world(1)
     out = {"query": _view(world, 0.0, 0.0, 0.0, seed=10)}
     for k, (dx, dy, yaw) in enumerate(((1.5, -1.0, 10.0), (-2.0, 2.0, 90.0), (3.0, 0.5, -30.0))):
         out[f"near{k}"] = _view(world, dx, dy, yaw, seed=20 + k)
     for k in range(2):
-        out[f"far{k}"] = _view(_world(5 + k), 0.0, 0.0, 0.0, seed=30 + k)
+        out[f"far{k}"] = _view(scattered_world(5 + k), 0.0, 0.0, 0.0, seed=30 + k)
     return out
 
 
@@ -65,16 +48,6 @@ class Counted:
         return CloudRef(name, load)
 
 
-def _same(a: object, b: object) -> bool:
-    """Whether two verdicts agree field for field (arrays exactly, NaN equal to NaN)."""
-    for name in ("accepted", "reason", "fitness", "rmse", "constraint", "coarse_fitness"):
-        x, y = getattr(a, name), getattr(b, name)
-        if x != y and not (isinstance(x, float) and math.isnan(x) and math.isnan(y)):
-            return False
-    return all(np.array_equal(getattr(a, n), getattr(b, n), equal_nan=True)
-               for n in ("match_T_query", "covariance", "initial"))
-
-
 MATCHES = ("near0", "far0", "near1", "far1", "near2")
 
 
@@ -89,7 +62,7 @@ def test_verdicts_over_two_processes_are_those_of_one_process_and_each_cloud_cro
         again = pool.verify([(counted.ref("query"), counted.ref(m)) for m in MATCHES])
         assert pool.fallbacks == 0 and pool.worker_cpu_seconds > 0
     for answers in (first, again):
-        assert all(isinstance(v, Verification) and _same(v, a) for v, a in zip(answers, alone, strict=True))
+        assert all(isinstance(v, Verification) and same_verdict(v, a) for v, a in zip(answers, alone, strict=True))
     assert all(counted.loads[m] == 1 for m in MATCHES)  # the second keyframe's clouds were kept by the workers
     assert 1 <= counted.loads["query"] <= 2  # once for each worker given a pair of it
 
@@ -117,10 +90,10 @@ def test_a_worker_that_dies_is_stood_in_for_by_the_caller_then_replaced_with_the
         worker.process.kill()
         worker.process.wait(timeout=10)
         (answer,) = pool.verify([(CloudRef("q", lambda: clouds["query"]), CloudRef("m", lambda: clouds["near1"]))])
-        assert isinstance(answer, Verification) and _same(answer, expected)
+        assert isinstance(answer, Verification) and same_verdict(answer, expected)
         assert pool.fallbacks == 1
         (answer,) = pool.verify([(CloudRef("q", lambda: clouds["query"]), CloudRef("m", lambda: clouds["near1"]))])
-        assert isinstance(answer, Verification) and _same(answer, expected)
+        assert isinstance(answer, Verification) and same_verdict(answer, expected)
         assert pool.fallbacks == 1 and pool._workers[0] is not None and pool._workers[0] is not worker
     finally:
         pool.close()
@@ -158,7 +131,7 @@ def test_a_worker_answers_a_pair_that_raises_with_the_error_and_goes_on_to_the_n
     parent, child = multiprocessing.Pipe()
     worker = threading.Thread(target=_serve, args=(child,), daemon=True)
     worker.start()
-    cloud = GeometricVerifier(CONFIG).compact(_view(_world(1), 0.0, 0.0, 0.0, seed=10))
+    cloud = GeometricVerifier(CONFIG).compact(_view(scattered_world(1), 0.0, 0.0, 0.0, seed=10))
     parent.send((CONFIG, 4))
     parent.send([(("q", np.asarray(cloud, np.float64)), ("m", np.zeros((10, 2)))),  # 20 numbers: not N x 3
                  (("q", None), ("m2", np.asarray(cloud, np.float64)))])
