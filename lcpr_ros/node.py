@@ -296,7 +296,7 @@ class LcprNode(NodeStats, Node):
             self.loops += 1
         self.latency.add(time.monotonic() - synced.arrival)
         self.model_time.add(result.timings.get("preprocess", 0.0) + result.timings.get("network", 0.0))
-        if "verify" in result.timings:
+        if result.candidates and "verify" in result.timings:  # a keyframe without candidates verifies nothing
             self.verify_time.add(result.timings["verify"])
 
     def _on_replaced(self, frame: SyncedFrame) -> None:

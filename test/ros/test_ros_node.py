@@ -131,8 +131,10 @@ def visit_places(ros: Ros) -> None:
 def test_an_exact_revisit_more_than_30_s_later_is_matched_to_the_right_frame(ros: Ros) -> None:
     visit_places(ros)
     assert ros.listener.out.loops == []  # everything is within 30 s: excluded
+    assert ros.node.verify_time.count == 0  # no candidates: no verification time counted
     ros.feed(ros.places[1], T0 + 40.0, x=10.5)
     assert ros.listener.wait(lambda o: o.loops and o.candidates, 10)
+    assert wait_until(lambda: ros.node.verify_time.count == 1, 5)
     assert ros.listener.out.loops == [(pytest.approx(T0 + 40.0), pytest.approx(T0 + 1.0))]
     rows = ros.listener.out.candidates[-1]
     assert rows[0]["match_id"] == ros.ids[1] and rows[0]["rank"] == 0
