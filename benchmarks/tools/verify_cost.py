@@ -11,9 +11,10 @@ near candidates are the ones that reach the fine stage. Per keyframe the time co
 preparing the query cloud and verifying every candidate; the candidates' clouds are
 prepared beforehand (the node caches 64 of them), and ``uncached`` adds preparing them too.
 ``--workers N`` also verifies the cached candidates over N threads (:meth:`GeometricVerifier.verify_all`),
-right after the same keyframe one by one (a fair comparison on a busy machine), and ``--processes N`` over N
-worker processes (:class:`~lcpr_core.verification.processes.VerifierProcesses`, what ``verify.processes`` runs in
-the node: each worker keeps its own prepared clouds, warmed by the first pass); every verdict of any of them is
+right after the same keyframe one by one (a fair comparison on a busy machine), and over ``--processes N``
+worker processes (default: ``verify.processes``, the node's; 0 leaves them out;
+:class:`~lcpr_core.verification.processes.VerifierProcesses`: each worker keeps its own prepared clouds, warmed by
+the first pass); every verdict of any of them is
 compared with the uncached pass's (they must be the same).
 ``--set NAME=VALUE`` overrides a numeric :class:`~lcpr_core.verification.VerifierConfig` field (to
 compare settings back to back). Prints medians and p90 on this CPU: wall time and the CPU time (this process's
@@ -52,8 +53,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--repeats", type=int, default=3, help="passes over the queries (the first one warms up)")
     p.add_argument("--max-points", type=int, default=None, help="compact cloud cap (default: CloudConfig's)")
     p.add_argument("--workers", type=int, default=1, help="threads verifying the cached candidates (default 1)")
-    p.add_argument("--processes", type=int, default=0,
-                   help="also time verification over this many worker processes (default 0: not)")
+    p.add_argument("--processes", type=int, default=None,
+                   help="also time verification over this many worker processes (default: verify.processes, "
+                        "the node's; 0: not)")
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                    help="override a numeric VerifierConfig field, e.g. overlap_points=0 (repeatable)")
     p.add_argument("--save", type=Path, default=None, help="write every verdict to this JSON file")
@@ -61,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.workers < 1:
         raise SystemExit(f"--workers {args.workers}; accepted: an integer >= 1")
-    if args.processes < 0:
+    if args.processes is not None and args.processes < 0:
         raise SystemExit(f"--processes {args.processes}; accepted: an integer >= 0")
 
     from concurrent.futures import ThreadPoolExecutor
@@ -100,9 +102,10 @@ def main(argv: list[str] | None = None) -> int:
     verdicts: dict[tuple[int, int], Verification] = {}
     mismatches: list[str] = []
     pool = ThreadPoolExecutor(args.workers) if args.workers > 1 else None
-    processes = VerifierProcesses(config, processes=args.processes) if args.processes > 0 else None
+    count = config.processes if args.processes is None else args.processes
+    processes = VerifierProcesses(config, processes=count) if count > 0 else None
     if processes is not None:
-        timed[f"over {args.processes} processes"] = ([], [])
+        timed[f"over {count} processes"] = ([], [])
     ref = lambda i: CloudRef(i, lambda: compact[i])  # noqa: E731 - a keyframe's cloud by its index
     try:
         for _ in tqdm(range(args.repeats), desc="passes"):
