@@ -32,7 +32,7 @@ import numpy as np
 
 from ..errors import VerificationError
 from .config import VerifierConfig
-from .verifier import GeometricVerifier, PreparedCache, PreparedCloud, Verification
+from .verifier import GeometricVerifier, LruCache, PreparedCache, PreparedCloud, Verification
 
 RESPAWNS = 3  # workers replaced after one died, in the life of a pool; then the caller's process verifies
 _ONE_THREAD = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
@@ -46,32 +46,6 @@ class CloudRef:
 
     key: Hashable
     load: Callable[[], np.ndarray]
-
-
-class _Keys:
-    """The keys a worker's LRU cache holds, updated by the same gets and puts the worker makes."""
-
-    def __init__(self, size: int) -> None:
-        self.size = size
-        self._keys: OrderedDict[Hashable, None] = OrderedDict()
-
-    def __contains__(self, key: Hashable) -> bool:
-        return key in self._keys
-
-    def get(self, key: Hashable) -> bool:
-        if key not in self._keys:
-            return False
-        self._keys.move_to_end(key)
-        return True
-
-    def put(self, key: Hashable) -> None:
-        self._keys[key] = None
-        self._keys.move_to_end(key)
-        if len(self._keys) > self.size:
-            self._keys.popitem(last=False)
-
-    def discard(self, key: Hashable) -> None:
-        self._keys.pop(key, None)
 
 
 class _Worker:
@@ -90,7 +64,8 @@ class _Worker:
                 stdin=subprocess.DEVNULL, env=env, close_fds=True)
         self.conn = Connection(ours.detach())
         self.conn.send((config, cache))
-        self.sources, self.matches = _Keys(SOURCE_CACHE), _Keys(cache)
+        # the keys its caches hold, touched and filled as the worker's own (the same LRU rule)
+        self.sources, self.matches = LruCache[bool](SOURCE_CACHE), LruCache[bool](cache)
 
 
 class VerifierProcesses:
@@ -141,15 +116,15 @@ class VerifierProcesses:
                 try:
                     worker.conn.send(request)
                     sent.append((w, given))
-                except (OSError, ValueError, EOFError) as err:
-                    self._drop(w, err)
+                except (OSError, ValueError, EOFError):
+                    self._drop(w)
             for w, indices in sent:
                 worker = self._workers[w]
                 assert worker is not None
                 try:
                     answers, cpu_seconds = worker.conn.recv()
-                except (OSError, EOFError, ValueError, TypeError) as err:
-                    self._drop(w, err)
+                except (OSError, EOFError, ValueError, TypeError):
+                    self._drop(w)
                     continue
                 self.worker_cpu_seconds += cpu_seconds
                 for i, answer in zip(indices, answers, strict=True):
@@ -200,7 +175,7 @@ class VerifierProcesses:
             if held:
                 keys.get(ref.key)
             else:
-                keys.put(ref.key)
+                keys.put(ref.key, True)
         return tuple((ref.key, points) for (ref, _), points in zip(sides, xyz, strict=True))
 
     def _settle(self, worker: _Worker, pair: tuple[CloudRef, CloudRef], answer: Any
@@ -226,7 +201,7 @@ class VerifierProcesses:
         except Exception as err:  # noqa: BLE001 - returned in the pair's place, as a worker's would be
             return err
 
-    def _drop(self, w: int, err: BaseException) -> None:
+    def _drop(self, w: int) -> None:
         worker = self._workers[w]
         self._workers[w] = None
         if worker is not None:

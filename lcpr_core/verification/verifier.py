@@ -22,7 +22,7 @@ from collections import OrderedDict
 from collections.abc import Hashable, Iterator, Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 import numpy as np
 import small_gicp
@@ -41,6 +41,7 @@ REJECT_REASONS: tuple[str, ...] = (
 _ROS_ORDER = [3, 4, 5, 0, 1, 2]  # small_gicp's (rotation, translation) tangent -> (x, y, z, roll, pitch, yaw)
 _NEIGHBOURS = 10
 _COARSE_STRIDE = 8  # every 8th point estimates the overlap of a coarse result
+V = TypeVar("V")
 _BEV_QUERY_CACHE = 24  # query BEV spectra kept per prepared cloud (~120 KiB each), then forgotten at once
 
 
@@ -87,13 +88,12 @@ class PreparedCloud:
         return match.locate(xyz, yaw, spectrum=spectrum)
 
 
-class PreparedCache:
-    """The last ``size`` prepared clouds by key, the least recently used dropped first: consecutive queries share
-    most candidates, and preparing a cloud (voxels, normals, trees) costs as much as registering it."""
+class LruCache(Generic[V]):
+    """The last ``size`` values by key, the least recently used dropped first."""
 
     def __init__(self, size: int) -> None:
         self.size = size
-        self._items: OrderedDict[Hashable, PreparedCloud] = OrderedDict()
+        self._items: OrderedDict[Hashable, V] = OrderedDict()
 
     def __len__(self) -> int:
         return len(self._items)
@@ -101,21 +101,32 @@ class PreparedCache:
     def __iter__(self) -> Iterator[Hashable]:
         return iter(self._items)  # keys, least recently used first
 
-    def get(self, key: Hashable) -> PreparedCloud | None:
+    def __contains__(self, key: Hashable) -> bool:  # a look that does not count as a use
+        return key in self._items
+
+    def get(self, key: Hashable) -> V | None:
         hit = self._items.get(key)
         if hit is not None:
             self._items.move_to_end(key)
         return hit
 
-    def put(self, key: Hashable, prepared: PreparedCloud) -> PreparedCloud:
-        self._items[key] = prepared
+    def put(self, key: Hashable, value: V) -> V:
+        self._items[key] = value
         self._items.move_to_end(key)
         if len(self._items) > self.size:
             self._items.popitem(last=False)
-        return prepared
+        return value
+
+    def discard(self, key: Hashable) -> None:
+        self._items.pop(key, None)
 
     def clear(self) -> None:
         self._items.clear()
+
+
+class PreparedCache(LruCache[PreparedCloud]):
+    """The last ``size`` prepared clouds by key: consecutive queries share most candidates, and preparing a cloud
+    (voxels, normals, trees) costs as much as registering it."""
 
 
 @dataclass(frozen=True)
