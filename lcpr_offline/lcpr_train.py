@@ -89,6 +89,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "width are the defaults; whitening and turn averaging in it are not carried over (fit them "
                         "again on the result)")
     g.add_argument("--seed", type=int, default=0, help="initialisation and sampling seed (default 0)")
+    g.add_argument("--lidar-only", action="store_true",
+                   help="train for LiDAR-only robots: every camera slot empty in training, mining and validation "
+                        "(as lcpr_node's lidar_only gives frames to the network); the weights are marked so, and "
+                        "--whiten then fits their whitening on LiDAR-only frames too")
     g = p.add_argument_group("split and mining (paper defaults)")
     g.add_argument("--positive-radius", type=float, default=9.0, help="m (default 9)")
     g.add_argument("--negative-radius", type=float, default=18.0, help="m (default 18)")
@@ -129,6 +133,11 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--augment-lidar-occlusion", type=float, default=0.0,
                    help="chance a quarter of its range image is blacked out: a 90-degree sector, the top or the "
                         "bottom rows (default 0)")
+    g.add_argument("--augment-lidar-fov", type=float, default=0.0,
+                   help="chance its range image loses up to a quarter of its rows at the top and three eighths at the "
+                        "bottom: a sensor whose beams span less than the range image's geometry (default 0)")
+    g.add_argument("--augment-lidar-sparse", type=float, default=0.0,
+                   help="chance it loses every second row (half the beams) or 10-50 %% of its returns (default 0)")
     return p
 
 
@@ -155,7 +164,9 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         device=args.device, amp=args.amp,
         augment=AugmentConfig(yaw=args.augment_yaw, lighting=args.augment_lighting,
                               brightness=tuple(args.brightness), camera_drop=args.augment_camera_drop,
-                              lidar_occlusion=args.augment_lidar_occlusion),
+                              lidar_occlusion=args.augment_lidar_occlusion, lidar_fov=args.augment_lidar_fov,
+                              lidar_sparse=args.augment_lidar_sparse),
+        lidar_only=args.lidar_only,
     )
 
 
@@ -188,7 +199,7 @@ def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     cache = build_cache(args.bags, args.cache or args.out / "cache", inputs=config.inputs, progress=not args.quiet,
                         rebuild=args.rebuild_cache, workers=args.cache_workers)
-    data = TrainingData.from_cache(cache, config.split)
+    data = TrainingData.from_cache(cache, config.split, lidar_only=config.lidar_only)
     print(f"samples: {len(cache)} from {len(args.bags)} bag(s) (cache {cache.folder}, "
           f"built in {cache.meta.get('build_seconds', 0):.0f} s); split {data.split.summary()}", flush=True)
     inputs = config.inputs

@@ -26,6 +26,9 @@ IMAGENET_PREFIXES: dict[str, tuple[str, ...]] = {
     "layer3.": ("layer3_i.", "layer3_l."),
     "layer4.": ("layer4_i.", "layer4_l."),
 }
+#: Checkpoint entry marking weights trained with every camera slot empty (``lcpr_train --lidar-only``): they
+#: are meant for LiDAR-only frames, and their whitening is fitted on such frames.
+LIDAR_ONLY = "lidar_only"
 
 
 def load_checkpoint(path: str | os.PathLike[str], *, mmap: bool = False) -> object:
@@ -67,6 +70,12 @@ def copy_with(source: str | os.PathLike[str], target: str | os.PathLike[str], en
     obj = read_released(source)
     obj.update(entries)
     return save_torch(obj, target, shared=True)
+
+
+def trained_lidar_only(path: str | os.PathLike[str]) -> bool:
+    """Whether a weights file was trained for LiDAR-only frames (its :data:`LIDAR_ONLY` entry)."""
+    obj = load_checkpoint(path, mmap=True)
+    return isinstance(obj, Mapping) and bool(obj.get(LIDAR_ONLY, False))
 
 
 def read_state_dict(path: str | os.PathLike[str]) -> dict[str, torch.Tensor]:

@@ -11,7 +11,12 @@ validation compute), each sample independently:
 - camera drop: one camera, chosen at random, blacked out (a zero slot, as a camera that stopped sending);
 - LiDAR occlusion: a quarter of the range image set to no return, as the paper's occlusion study: a
   90-degree sector at a random azimuth, the top quarter of the rows or the bottom quarter (one of the
-  three, equally likely; :data:`LIDAR_QUARTERS`).
+  three, equally likely; :data:`LIDAR_QUARTERS`);
+- LiDAR field of view: up to a quarter of the rows at the top and up to three eighths at the bottom set
+  to no return, each count uniform (a real sensor whose beams span less than the range image's
+  geometry: a KITTI HDL-64E leaves nuScenes' top rows empty, a VLP-16 both ends);
+- sparse LiDAR: every second row set to no return (a sensor with half the beams) or, equally likely, a
+  share of the returns uniform in ``sparse_share`` dropped at random (far, dark or wet surfaces).
 """
 from __future__ import annotations
 
@@ -60,19 +65,48 @@ class AugmentConfig:
     brightness: tuple[float, float] = (0.3, 1.6)  # range of the brightness factor
     camera_drop: float = 0.0  # chance one of its cameras is blacked out
     lidar_occlusion: float = 0.0  # chance a quarter of its range image is blacked out
+    lidar_fov: float = 0.0  # chance its range image loses rows at the top and the bottom
+    lidar_sparse: float = 0.0  # chance it loses every second row or a random share of its returns
+    sparse_share: tuple[float, float] = (0.1, 0.5)  # range of the share of returns dropped
 
     def __post_init__(self) -> None:
-        for name in ("yaw", "lighting", "camera_drop", "lidar_occlusion"):
+        for name in ("yaw", "lighting", "camera_drop", "lidar_occlusion", "lidar_fov", "lidar_sparse"):
             value = getattr(self, name)
             if not 0.0 <= value <= 1.0:
                 raise InvalidValueError(f"augment.{name}={value!r}; expected a probability in [0, 1]")
         low, high = self.brightness
         if not 0.0 < low <= high:
             raise InvalidValueError(f"augment.brightness={self.brightness}; expected 0 < low <= high")
+        low, high = self.sparse_share
+        if not 0.0 <= low <= high < 1.0:
+            raise InvalidValueError(f"augment.sparse_share={self.sparse_share}; expected 0 <= low <= high < 1")
 
     @property
     def active(self) -> bool:
-        return self.yaw > 0 or self.lighting > 0 or self.camera_drop > 0 or self.lidar_occlusion > 0
+        return any(p > 0 for p in (self.yaw, self.lighting, self.camera_drop, self.lidar_occlusion, self.lidar_fov,
+                                   self.lidar_sparse))
+
+
+def narrow_fov(ranges: np.ndarray, top: int, bottom: int) -> np.ndarray:
+    """... x h x w range images with their ``top`` first and ``bottom`` last rows set to no return (a copy)."""
+    out = ranges.copy()
+    h = ranges.shape[-2]
+    if not (0 <= top and 0 <= bottom and top + bottom < h):
+        raise InvalidValueError(f"top={top}, bottom={bottom}; expected counts >= 0 leaving a row of the {h}")
+    out[..., :top, :] = NO_RETURN
+    out[..., h - bottom:, :] = NO_RETURN
+    return out
+
+
+def sparsify(ranges: np.ndarray, rng: np.random.Generator, share: tuple[float, float]) -> np.ndarray:
+    """One h x w range image with every second row (from a random first one) or a random share of its
+    pixels set to no return (a copy), each equally likely."""
+    out = ranges.copy()
+    if rng.random() < 0.5:
+        out[int(rng.integers(2))::2] = NO_RETURN
+    else:
+        out[rng.random(out.shape) < rng.uniform(*share)] = NO_RETURN
+    return out
 
 
 def turn(images: np.ndarray, cameras: np.ndarray, ranges: np.ndarray, k: int) -> tuple[np.ndarray, ...]:
@@ -103,4 +137,9 @@ def augment(images: np.ndarray, cameras: np.ndarray, ranges: np.ndarray, config:
         if config.lidar_occlusion > 0 and rng.random() < config.lidar_occlusion:  # old recipes: same draws
             part = list(LIDAR_QUARTERS)[int(rng.integers(len(LIDAR_QUARTERS)))]
             ranges[b] = occlude_lidar(ranges[b], part, start=int(rng.integers(ranges.shape[-1])))
+        if config.lidar_fov > 0 and rng.random() < config.lidar_fov:  # (guarded: earlier recipes' draws unchanged)
+            h = ranges.shape[-2]
+            ranges[b] = narrow_fov(ranges[b], int(rng.integers(h // 4 + 1)), int(rng.integers(3 * h // 8 + 1)))
+        if config.lidar_sparse > 0 and rng.random() < config.lidar_sparse:
+            ranges[b] = sparsify(ranges[b], rng, config.sparse_share)
     return images, cameras, ranges

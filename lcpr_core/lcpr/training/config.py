@@ -166,6 +166,7 @@ class TrainConfig:
     device: str = "cpu"  # torch device, e.g. cuda:0 for the released preset
     amp: str = "off"  # off: float32 throughout; bf16: forward passes under bfloat16 autocast (GPUs)
     augment: AugmentConfig = field(default_factory=AugmentConfig)  # off by default
+    lidar_only: bool = False  # every camera slot empty in training, mining and validation (LiDAR-only weights)
 
     def __post_init__(self) -> None:
         if self.threads < 1:

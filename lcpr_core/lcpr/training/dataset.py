@@ -37,14 +37,19 @@ def to_model_inputs(images: np.ndarray, cameras: np.ndarray, ranges: np.ndarray,
 
 @dataclass(frozen=True)
 class TrainingData:
-    """A sample cache together with its database / query split."""
+    """A sample cache together with its database / query split; with ``lidar_only`` every sample's camera
+    slots are empty wherever its inputs are read (training, mining, validation, whitening), as
+    ``lcpr_node``'s ``lidar_only`` gives them to the network."""
 
     cache: SampleCache
     split: Split
+    lidar_only: bool = False
 
     @classmethod
-    def from_cache(cls, cache: SampleCache, config: SplitConfig = SplitConfig()) -> TrainingData:
-        return cls(cache=cache, split=split_samples(cache.positions, cache.stamps, cache.groups, config))
+    def from_cache(cls, cache: SampleCache, config: SplitConfig = SplitConfig(), *,
+                   lidar_only: bool = False) -> TrainingData:
+        return cls(cache=cache, split=split_samples(cache.positions, cache.stamps, cache.groups, config),
+                   lidar_only=lidar_only)
 
     def __len__(self) -> int:
         return len(self.cache)
@@ -61,6 +66,8 @@ class TrainingData:
         back[order] = np.arange(len(idx))
         s = idx[order]
         imgs, cams, rngs = self.cache.images[s][back], self.cache.cameras[s][back], self.cache.ranges[s][back]
+        if self.lidar_only:
+            cams = np.zeros_like(cams)
         if augmentation is not None and augmentation.active:
             if rng is None:
                 raise InvalidValueError("augmentation needs an rng (a numpy Generator); got None")

@@ -30,22 +30,40 @@ TURN_AVERAGE_MAX_RECALL_DROP = 0.01
 WHITENING_MAX_RECALL_DROP = 0.01
 #: Mean clean validation Recall@1 weights trained with LiDAR occlusion may lose against the bundled ones.
 OCCLUSION_MAX_CLEAN_LOSS = 0.01
+#: Mean LiDAR-only validation max F1 LiDAR-only weights must add to the bundled weights' (cameras empty).
+LIDAR_ONLY_MIN_F1_GAIN = 0.01
+#: Mean LiDAR-only validation Recall@1 they may lose against the bundled weights'.
+LIDAR_ONLY_MAX_RECALL_DROP = 0.01
+
+
+def gains_without_loss(new: dict, old: dict, *, min_f1_gain: float, max_recall_drop: float) -> bool:
+    """Whether ``new`` adds at least ``min_f1_gain`` of mean validation max F1 to ``old`` while losing at most
+    ``max_recall_drop`` of its mean validation Recall@1: the form of the adoption rules below."""
+    return (new["mean_max_f1"] >= old["mean_max_f1"] + min_f1_gain
+            and new["mean_recall@1"] >= old["mean_recall@1"] - max_recall_drop)
 
 
 def adopt_finetuned(result: dict, bundled: dict) -> bool:
     """Whether fine-tuned weights replace the bundled ones: mean validation max F1 at least
     FINETUNE_MIN_F1_GAIN above theirs, mean validation Recall@1 at most FINETUNE_MAX_RECALL_DROP below."""
-    return (result["mean_max_f1"] >= bundled["mean_max_f1"] + FINETUNE_MIN_F1_GAIN
-            and result["mean_recall@1"] >= bundled["mean_recall@1"] - FINETUNE_MAX_RECALL_DROP)
+    return gains_without_loss(result, bundled, min_f1_gain=FINETUNE_MIN_F1_GAIN,
+                              max_recall_drop=FINETUNE_MAX_RECALL_DROP)
+
+
+def adopt_lidar_only(result: dict, bundled: dict) -> bool:
+    """Whether weights trained LiDAR-only become the LiDAR-only default: both points scored with every camera
+    slot empty; mean validation max F1 at least LIDAR_ONLY_MIN_F1_GAIN above the bundled weights', mean
+    validation Recall@1 at most LIDAR_ONLY_MAX_RECALL_DROP below."""
+    return gains_without_loss(result, bundled, min_f1_gain=LIDAR_ONLY_MIN_F1_GAIN,
+                              max_recall_drop=LIDAR_ONLY_MAX_RECALL_DROP)
 
 
 def adopt_turn_average(scores: dict[str, dict]) -> bool:
     """Whether turn averaging is adopted: ``scores["turn average"]``'s mean validation max F1 at least
     TURN_AVERAGE_MIN_F1_GAIN above ``scores["single"]``'s, its mean Recall@1 at most
     TURN_AVERAGE_MAX_RECALL_DROP below."""
-    single, turned = scores["single"], scores["turn average"]
-    return (turned["mean_max_f1"] >= single["mean_max_f1"] + TURN_AVERAGE_MIN_F1_GAIN
-            and turned["mean_recall@1"] >= single["mean_recall@1"] - TURN_AVERAGE_MAX_RECALL_DROP)
+    return gains_without_loss(scores["turn average"], scores["single"], min_f1_gain=TURN_AVERAGE_MIN_F1_GAIN,
+                              max_recall_drop=TURN_AVERAGE_MAX_RECALL_DROP)
 
 
 def choose_whitening(variants: dict[str, dict]) -> str:

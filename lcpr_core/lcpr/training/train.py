@@ -13,6 +13,7 @@ reads, so ``build_model(ModelConfig(weights='best.pth'))`` rebuilds the trained 
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -30,7 +31,7 @@ from lcpr_common.progress import progress_bar
 
 from ...atomic import atomic_path, save_torch
 from ...errors import CheckpointError, InvalidValueError
-from ..checkpoint import check_state_dict, init_from_imagenet, load_weights, read_released, save_checkpoint
+from ..checkpoint import LIDAR_ONLY, check_state_dict, init_from_imagenet, load_weights, read_released, save_checkpoint
 from ..models import LCPR
 from ..turn_average import ENTRY as TURN_AVERAGE
 from ..whitening import ENTRY as WHITENING
@@ -76,6 +77,8 @@ class Trainer:
 
     def __post_init__(self) -> None:
         self.out = Path(self.out)
+        if self.data.lidar_only != self.config.lidar_only:  # the config decides what the network sees
+            self.data = dataclasses.replace(self.data, lidar_only=self.config.lidar_only)
         torch.set_num_threads(self.config.threads)
         self.device = torch.device(self.config.device)
         self.model = make_model(self.config).to(self.device)
@@ -92,6 +95,8 @@ class Trainer:
     # ------------------------------------------------------------------ checkpoints
     def _payload_extra(self, *, full: bool) -> dict[str, Any]:
         extra: dict[str, Any] = {"config": self.config.inputs.model_entry(), "history": self.history}
+        if self.config.lidar_only:
+            extra[LIDAR_ONLY] = True
         if full:
             extra |= {"optimizer": self.optimizer.state_dict(), "train": self.config.to_dict()}
         return extra
@@ -300,8 +305,9 @@ def export_weights(source: str | os.PathLike[str], target: str | os.PathLike[str
                "config": ckpt.get("config"), "history": ckpt.get("history", [])}
     if ckpt.get(WHITENING) is not None:  # float32 always: it is small and scales tiny directions up
         payload[WHITENING] = ckpt[WHITENING]
-    if TURN_AVERAGE in ckpt:
-        payload[TURN_AVERAGE] = ckpt[TURN_AVERAGE]
+    for entry in (TURN_AVERAGE, LIDAR_ONLY):
+        if entry in ckpt:
+            payload[entry] = ckpt[entry]
     return save_torch(payload, target, shared=True)  # a file to ship: readable by all
 
 

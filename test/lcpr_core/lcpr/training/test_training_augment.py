@@ -1,5 +1,5 @@
 """LCPR training augmentations (lcpr_core.lcpr.training.augment): yaw by camera slots, lighting, a missing camera,
-a quarter of the LiDAR occluded."""
+a quarter of the LiDAR occluded, a narrower or sparser LiDAR."""
 from __future__ import annotations
 
 import numpy as np
@@ -8,7 +8,15 @@ import pytest
 from lcpr_core.errors import InvalidValueError
 from lcpr_core.lcpr.preprocess.range_image import NO_RETURN, range_image
 from lcpr_core.lcpr.preprocess.turn import SLOT_YAWS_DEG, range_columns, turn_frame
-from lcpr_core.lcpr.training.augment import LIDAR_QUARTERS, AugmentConfig, augment, occlude_lidar, turn
+from lcpr_core.lcpr.training.augment import (
+    LIDAR_QUARTERS,
+    AugmentConfig,
+    augment,
+    narrow_fov,
+    occlude_lidar,
+    sparsify,
+    turn,
+)
 from lcpr_core.points import rotate_z
 
 
@@ -103,3 +111,44 @@ def test_bad_augmentation_settings_name_the_accepted_values() -> None:
     with pytest.raises(InvalidValueError, match="needs the 6 nuScenes cameras"):
         augment(np.zeros((1, 4, 2, 2, 3), np.uint8), np.ones((1, 4), bool), np.zeros((1, 2, 8), np.float32),
                 AugmentConfig(yaw=1.0), np.random.default_rng(0))
+
+
+def test_a_narrower_field_of_view_blanks_whole_rows_at_both_ends_and_keeps_the_rest() -> None:
+    ranges = np.ones((16, 288), np.float32)
+    out = narrow_fov(ranges, 3, 5)
+    assert (out[:3] == NO_RETURN).all() and (out[-5:] == NO_RETURN).all() and (out[3:11] == 1).all()
+    assert (ranges == 1).all() and np.array_equal(narrow_fov(ranges, 0, 0), ranges)
+    with pytest.raises(InvalidValueError, match="top=8, bottom=8; expected counts >= 0 leaving a row of the 16"):
+        narrow_fov(ranges, 8, 8)
+
+
+def test_sparse_lidar_drops_every_second_row_or_a_share_of_the_returns() -> None:
+    rng = np.random.default_rng(3)
+    ranges = np.ones((16, 288), np.float32)
+    kinds = set()
+    for _ in range(40):
+        out = sparsify(ranges, rng, (0.2, 0.3))
+        blank_rows = (out == NO_RETURN).all(axis=1)
+        if blank_rows.sum() == 8:  # every second row, from row 0 or row 1
+            assert blank_rows[::2].all() != blank_rows[1::2].all()
+            kinds.add("rows")
+        else:
+            assert 0.15 < (out == NO_RETURN).mean() < 0.35 and not blank_rows.any()
+            kinds.add("returns")
+    assert kinds == {"rows", "returns"} and (ranges == 1).all()
+
+
+def test_the_sensor_augmentations_touch_only_the_range_images_of_the_samples_drawn() -> None:
+    rng = np.random.default_rng(4)
+    images = rng.integers(0, 256, (20, 6, 2, 2, 3), dtype=np.uint8)
+    cameras = np.ones((20, 6), bool)
+    ranges = rng.uniform(1, 50, (20, 16, 288)).astype(np.float32)
+    out_images, out_cameras, out = augment(images, cameras, ranges, AugmentConfig(lidar_fov=1.0, lidar_sparse=1.0),
+                                           rng)
+    assert np.array_equal(out_images, images) and out_cameras.all()
+    assert ((out == NO_RETURN).mean(axis=(1, 2)) > 0).all()
+    assert np.array_equal(out[out != NO_RETURN], ranges[out != NO_RETURN])
+    with pytest.raises(InvalidValueError, match=r"augment.lidar_sparse=2; expected a probability in \[0, 1\]"):
+        AugmentConfig(lidar_sparse=2)
+    with pytest.raises(InvalidValueError, match=r"augment.sparse_share=\(0.5, 1.0\); expected 0 <= low <= high < 1"):
+        AugmentConfig(sparse_share=(0.5, 1.0))

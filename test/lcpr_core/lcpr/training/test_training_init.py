@@ -89,6 +89,18 @@ def test_the_finetune_recipe_adopts_only_a_point_of_max_f1_at_no_real_cost_in_re
     assert not adopt_finetuned(v(0.950, 0.950), bundled)  # Recall@1 down more than a point
 
 
+def test_lidar_only_weights_become_the_lidar_only_default_only_with_a_point_of_max_f1():
+    from lcpr_core.lcpr.training.recipe_rules import adopt_lidar_only
+
+    def v(r: float, f: float) -> dict:
+        return {"mean_recall@1": r, "mean_max_f1": f}
+
+    bundled = v(0.900, 0.800)
+    assert adopt_lidar_only(v(0.895, 0.811), bundled)
+    assert not adopt_lidar_only(v(0.990, 0.805), bundled)  # max F1 up less than a point
+    assert not adopt_lidar_only(v(0.880, 0.900), bundled)  # Recall@1 down more than a point
+
+
 def test_the_finetune_corpus_links_every_bag_and_refuses_a_seed_the_corpus_has(tmp_path):
     from pathlib import Path
 

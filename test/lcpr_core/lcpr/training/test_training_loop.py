@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from lcpr_core import ModelConfig, build_model
+from lcpr_core.lcpr.checkpoint import trained_lidar_only
 from lcpr_core.lcpr.describer import Describer, checkpoint_config
 from lcpr_core.lcpr.training import Trainer, TrainingData, export_weights, open_cache
 from lcpr_core.lcpr.training.mining import Triplet
@@ -163,3 +164,45 @@ def test_the_evaluation_table_prints_one_line_per_report_in_name_order(tmp_path)
         "eval_a LCPR: R@1 0.250 max F1 0.800 thr 0.7 | Scan Context: R@1 nan max F1 0.000 thr None",
         "eval_b LCPR: R@1 0.500 max F1 0.800 thr 0.7 | Scan Context: R@1 nan max F1 0.000 thr None",
     ]
+
+
+def test_lidar_only_training_never_shows_the_network_a_camera_and_marks_its_weights(data, tmp_path):
+    config = dataclasses.replace(tiny_config(epochs=1), lidar_only=True)
+    trainer = Trainer(data, config, tmp_path / "run", progress=False, echo=quiet)
+    assert trainer.data.lidar_only and not data.lidar_only  # the config decides
+    images, _ = trainer.data.inputs(data.split.train[:3])
+    assert not images.any()
+    with_cameras, _ = data.inputs(data.split.train[:3])
+    assert with_cameras.any()
+    trainer.fit()
+    export_weights(tmp_path / "run" / "best.pth", tmp_path / "lidar.pth")
+    assert trained_lidar_only(tmp_path / "lidar.pth") and trained_lidar_only(tmp_path / "run" / "best.pth")
+    Trainer(data, tiny_config(epochs=1), tmp_path / "plain", progress=False, echo=quiet).fit()
+    assert not trained_lidar_only(tmp_path / "plain" / "best.pth")
+
+
+def test_whitening_of_lidar_only_weights_is_fitted_on_frames_without_cameras(data, tmp_path, monkeypatch):
+    from lcpr_core.lcpr.training import whiten
+
+    Trainer(data, dataclasses.replace(tiny_config(epochs=1), lidar_only=True), tmp_path / "run", progress=False,
+            echo=quiet).fit()
+    seen: list[bool] = []
+    real = whiten.describe_samples
+
+    def spy(model, described, *args, **kwargs):
+        seen.append(described.lidar_only)
+        return real(model, described, *args, **kwargs)
+
+    monkeypatch.setattr(whiten, "describe_samples", spy)
+    whiten.whiten_checkpoint(tmp_path / "run" / "best.pth", tmp_path / "w.pth", data, dims=8, progress=False)
+    assert seen == [True] and trained_lidar_only(tmp_path / "w.pth")
+
+
+def test_the_cli_builds_lidar_only_training_and_the_sensor_augmentations():
+    from lcpr_offline.lcpr_train import build_parser, config_from_args
+
+    args = build_parser().parse_args(["a.bag", "--lidar-only", "--augment-lidar-fov", "0.3",
+                                      "--augment-lidar-sparse", "0.2"])
+    config = config_from_args(args)
+    assert config.lidar_only and config.augment.lidar_fov == 0.3 and config.augment.lidar_sparse == 0.2
+    assert not config_from_args(build_parser().parse_args(["a.bag"])).lidar_only
