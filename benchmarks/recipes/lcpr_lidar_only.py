@@ -10,8 +10,9 @@ before any validation city was scored with the new weights:
 
 1. ``lcpr_train --init WEIGHTS --lidar-only`` on the corpus's 12 training cities (``--seeds 47 49 51 53`` adds
    the four KITTI-00-route cities the bundled file's fine-tuning added, rendered as ``lcpr_finetune.py``
-   renders them), every camera slot empty in training, mining and validation, the bundled recipe's options and its learning-rate schedule where it
-   stood after fine-tuning (3e-4 x 0.8^10, x0.8 every 6 epochs), and two augmentations for real sensors
+   renders them), every camera slot empty in training, mining and validation, the bundled recipe's options
+   and its learning-rate schedule where it stood after fine-tuning (3e-4 x 0.8^10, x0.8 every 6 epochs), and
+   two augmentations for real sensors
    (``--augment-lidar-fov 0.3``: beams spanning less than the range image's geometry;
    ``--augment-lidar-sparse 0.3``: half the beams, or 10-50 % of the returns lost), to each of ``--stages``.
 2. Each stage gets the bundled file's post-processing, fixed, not searched: whitening (power 0.5, 128
