@@ -77,11 +77,13 @@ def test_init_and_imagenet_together_are_refused_by_name():
                             init="w.pth")
 
 
+def v(r: float, f: float) -> dict:
+    """A validation point of the recipes' rules: mean Recall@1 and mean max F1."""
+    return {"mean_recall@1": r, "mean_max_f1": f}
+
+
 def test_the_finetune_recipe_adopts_only_a_point_of_max_f1_at_no_real_cost_in_recall():
     from lcpr_core.lcpr.training.recipe_rules import adopt_finetuned
-
-    def v(r: float, f: float) -> dict:
-        return {"mean_recall@1": r, "mean_max_f1": f}
 
     bundled = v(0.963, 0.887)
     assert adopt_finetuned(v(0.955, 0.900), bundled)
@@ -91,9 +93,6 @@ def test_the_finetune_recipe_adopts_only_a_point_of_max_f1_at_no_real_cost_in_re
 
 def test_lidar_only_weights_become_the_lidar_only_default_only_with_a_point_of_max_f1():
     from lcpr_core.lcpr.training.recipe_rules import adopt_lidar_only
-
-    def v(r: float, f: float) -> dict:
-        return {"mean_recall@1": r, "mean_max_f1": f}
 
     bundled = v(0.900, 0.800)
     assert adopt_lidar_only(v(0.895, 0.811), bundled)
