@@ -62,6 +62,36 @@ class Config:
 CPU = Config("cpu preset (64x192, 16x288, w 0.25, lr 3e-4)", (64, 192), (16, 288), 0.25, 3e-4, 6, 0.8)
 
 
+def require_corpus(corpus: Path) -> None:
+    """Exit naming the validation and test cities ``corpus`` lacks, if any (``lcpr_corpus.sh`` makes them)."""
+    missing = [n for n in (*VALIDATION, *TEST) if not (corpus / f"{n}.bag").is_dir()]
+    if missing:
+        raise SystemExit(f"{corpus}: missing {missing}; run benchmarks/recipes/lcpr_corpus.sh first")
+
+
+def check_stages(stages: list[int]) -> None:
+    """Exit unless fine-tuning ``stages`` (epochs) rise and start at 1 or more."""
+    if sorted(set(stages)) != stages or stages[0] < 1:
+        raise SystemExit(f"--stages {stages}: must rise and start at 1 or more")
+
+
+def trained_epochs(run_dir: Path) -> int:
+    """The last epoch ``lcpr_train`` recorded in ``run_dir`` (0 before its first run)."""
+    history = run_dir / "history.json"
+    return int(json.loads(history.read_text())[-1]["epoch"]) if history.is_file() else 0
+
+
+def mean_point(cities: dict[str, dict]) -> dict:
+    """A rule's point (:mod:`lcpr_core.lcpr.training.recipe_rules`): per-city figures and their means."""
+    return {"cities": cities, "mean_recall@1": sum(c["recall@1"] for c in cities.values()) / len(cities),
+            "mean_max_f1": sum(c["max_f1"] for c in cities.values()) / len(cities)}
+
+
+def lcpr_figures(final: dict[str, dict]) -> dict[str, dict]:
+    """Per city the LCPR method's (the first method's) online figures of an evaluation by method."""
+    return {city: next(iter(methods.values())) for city, methods in final.items()}
+
+
 def run(cmd: list[str]) -> None:
     """Run a command; on failure exit naming it, with the tail of its output."""
     proc = subprocess.run(cmd, capture_output=True, text=True)

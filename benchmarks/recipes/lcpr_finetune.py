@@ -61,19 +61,23 @@ from lcpr_core.lcpr.turn_average import ENTRY as TURN_AVERAGE
 from lcpr_core.lcpr.whitening import ENTRY as WHITENING
 from lcpr_core.timing import cpu_model
 from lcpr_offline.lcpr_recipe import (
-    TEST,
     THRESHOLD_CITY,
     VALIDATION,
     Config,
+    check_stages,
     evaluate,
     export,
     extend_corpus,
     final_evaluation,
     finish_figure,
+    lcpr_figures,
+    mean_point,
     one_panel,
     print_final,
+    require_corpus,
     run,
     train_command,
+    trained_epochs,
     training_seconds,
 )
 
@@ -81,16 +85,6 @@ from lcpr_offline.lcpr_recipe import (
 FINETUNE = Config("cpu preset from the bundled network (lr 3e-4 x 0.8^10)", (64, 192), (16, 288), 0.25,
                   3e-4 * 0.8**10, 6, 0.8)
 FRAMES = 300
-
-
-def mean_point(cities: dict[str, dict]) -> dict:
-    return {"cities": cities, "mean_recall@1": sum(c["recall@1"] for c in cities.values()) / len(cities),
-            "mean_max_f1": sum(c["max_f1"] for c in cities.values()) / len(cities)}
-
-
-def lcpr_figures(final: dict[str, dict]) -> dict[str, dict]:
-    """Per city the LCPR method's online Recall@1 and max F1 of a :func:`final_evaluation`."""
-    return {city: next(iter(methods.values())) for city, methods in final.items()}
 
 
 def postprocess(stage: Path, corpus: Path, cache: Path, out: Path) -> Path:
@@ -123,11 +117,8 @@ def main() -> None:
     p.add_argument("--stage-rule", choices=tuple(STAGE_RULES), default="recall",
                    help="recall: the bundle's rule (default); max_f1: the issue's target metric (step 3)")
     args = p.parse_args()
-    if sorted(set(args.stages)) != args.stages or args.stages[0] < 1:
-        raise SystemExit(f"--stages {args.stages}: must rise and start at 1 or more")
-    missing = [n for n in (*VALIDATION, *TEST) if not (args.corpus / f"{n}.bag").is_dir()]
-    if missing:
-        raise SystemExit(f"{args.corpus}: missing {missing}; run benchmarks/recipes/lcpr_corpus.sh first")
+    check_stages(args.stages)
+    require_corpus(args.corpus)
     py = sys.executable
     corpus = args.out / "corpus"
     train_bags = extend_corpus(args.corpus, corpus, args.seeds, frames=FRAMES)
@@ -142,8 +133,7 @@ def main() -> None:
     for epochs in args.stages:
         bar.update(1)
         weights = args.out / f"stage_e{epochs}.pth"
-        history = run_dir / "history.json"
-        trained = json.loads(history.read_text())[-1]["epoch"] if history.is_file() else 0
+        trained = trained_epochs(run_dir)
         if trained < epochs:
             run(train_command(py, FINETUNE, train_bags, run_dir, cache, epochs,
                               queries_per_epoch=args.queries_per_epoch, resume=trained > 0,

@@ -48,7 +48,21 @@ from lcpr_core.lcpr.training.recipe_rules import (
 )
 from lcpr_core.pretrained import with_operating_threshold
 from lcpr_core.timing import cpu_model
-from lcpr_offline.lcpr_recipe import TEST, THRESHOLD_CITY, VALIDATION, Config, export, extend_corpus, run, train_command
+from lcpr_offline.lcpr_recipe import (
+    TEST,
+    THRESHOLD_CITY,
+    VALIDATION,
+    Config,
+    check_stages,
+    export,
+    extend_corpus,
+    lcpr_figures,
+    mean_point,
+    require_corpus,
+    run,
+    train_command,
+    trained_epochs,
+)
 
 #: The bundled file's schedule where its fine-tuning left it (Adam 3e-4 x 0.8^10, x0.8 every 6 epochs).
 SCHEDULE = Config("cpu preset from the bundled network, LiDAR only", (64, 192), (16, 288), 0.25, 3e-4 * 0.8**10, 6,
@@ -68,13 +82,6 @@ def evaluate(bag: Path, weights: Path, out: Path, *, scans: bool = False) -> dic
              "--quiet", "--no-verify", *(["--topics", "scans"] if scans else ["--lidar-only", "--no-scan-context"]),
              "--out", str(out)])
     return online_methods(report)
-
-
-def lcpr_point(cities: dict[str, dict[str, dict]]) -> dict:
-    """The LCPR method's figures per city and their means (a rule's point)."""
-    first = {city: next(iter(methods.values())) for city, methods in cities.items()}
-    return {"cities": first, "mean_recall@1": sum(c["recall@1"] for c in first.values()) / len(first),
-            "mean_max_f1": sum(c["max_f1"] for c in first.values()) / len(first)}
 
 
 def postprocess(stage: Path, train_bags: list[str], cache: Path, out: Path) -> Path:
@@ -102,33 +109,31 @@ def main() -> None:
     p.add_argument("--real", nargs="*", type=Path, default=[Path(f) for f in REAL],
                    help="real scan folders (msg_tools_scans2bag layout) evaluated after the decision")
     args = p.parse_args()
-    if sorted(set(args.stages)) != args.stages or args.stages[0] < 1:
-        raise SystemExit(f"--stages {args.stages}: must rise and start at 1 or more")
-    missing = [n for n in (*VALIDATION, *TEST) if not (args.corpus / f"{n}.bag").is_dir()]
-    if missing:
-        raise SystemExit(f"{args.corpus}: missing {missing}; run benchmarks/recipes/lcpr_corpus.sh first")
+    check_stages(args.stages)
+    require_corpus(args.corpus)
     train_bags = extend_corpus(args.corpus, args.out / "corpus", args.seeds)
     run_dir, cache = args.out / "run", args.out / "run" / "cache"
     py = sys.executable
 
-    bundled = lcpr_point({n: evaluate(args.corpus / f"{n}.bag", args.weights, args.out / f"bundled_{n}")
-                          for n in VALIDATION})
+    bundled = mean_point(lcpr_figures({n: evaluate(args.corpus / f"{n}.bag", args.weights, args.out / f"bundled_{n}")
+                                       for n in VALIDATION}))
     points: list[dict] = []
     bar = progress_bar(len(args.stages), desc="LiDAR-only fine-tuning", unit="stage")
     for epochs in args.stages:
-        history = run_dir / "history.json"
-        trained = json.loads(history.read_text())[-1]["epoch"] if history.is_file() else 0
+        trained = trained_epochs(run_dir)
         stage = args.out / f"stage_e{epochs}.pth"
         if trained < epochs:
             extra = ["--init", str(args.weights), "--lidar-only", *SENSOR_AUGMENT]
             run(train_command(py, SCHEDULE, train_bags, run_dir, cache, epochs, resume=trained > 0, extra=extra,
                               queries_per_epoch=args.queries_per_epoch))
+            trained = epochs
+        if not stage.is_file():
+            if trained != epochs:
+                raise SystemExit(f"{run_dir} is at epoch {trained}, past stage {epochs}, and {stage} is missing")
             export(py, run_dir / "last.pth", stage, fp32=True)
-        elif not stage.is_file():
-            raise SystemExit(f"{run_dir} is at epoch {trained}, past stage {epochs}, and {stage} is missing")
         weights = postprocess(stage, train_bags, cache, args.out / f"e{epochs}")
         cities = {n: evaluate(args.corpus / f"{n}.bag", weights, args.out / f"e{epochs}_{n}") for n in VALIDATION}
-        points.append({"epochs": epochs, "weights": str(weights), **lcpr_point(cities)})
+        points.append({"epochs": epochs, "weights": str(weights), **mean_point(lcpr_figures(cities))})
         bar.update(1)
         bar.write(f"stage {epochs}: validation R@1 / max F1 " + ", ".join(
             f"{k} {v['recall@1']:.3f} / {v['max_f1']:.3f}" for k, v in points[-1]["cities"].items()))

@@ -48,7 +48,14 @@ from lcpr_core.lcpr.whitening import unit_rows
 from lcpr_core.timing import cpu_model
 from lcpr_core.verification import VerifierConfig
 from lcpr_offline.lcpr_evaluate import EvalOptions, evaluate_bag
-from lcpr_offline.lcpr_recipe import TEST, THRESHOLD_CITY, VALIDATION, final_evaluation, print_final, print_gates
+from lcpr_offline.lcpr_recipe import (
+    THRESHOLD_CITY,
+    VALIDATION,
+    final_evaluation,
+    print_final,
+    print_gates,
+    require_corpus,
+)
 
 CHOICES = ("single", "turn average")  # what the rule chooses between; the rest is reported only
 
@@ -103,9 +110,7 @@ def main() -> None:
                    help="evaluate the written weights on the validation cities only (a caller decides on them "
                         "before any test city is read)")
     args = p.parse_args()
-    missing = [n for n in (*VALIDATION, *TEST) if not (args.corpus / f"{n}.bag").is_dir()]
-    if missing:
-        raise SystemExit(f"{args.corpus}: missing {missing}; run benchmarks/recipes/lcpr_corpus.sh first")
+    require_corpus(args.corpus)
     args.out.mkdir(parents=True, exist_ok=True)
 
     cities: dict[str, tuple[dict[str, np.ndarray], GroundTruth]] = {}

@@ -133,3 +133,19 @@ def test_a_recipe_reuses_a_report_only_when_it_was_made_after_and_with_the_same_
     os.utime(ours, (3_000, 3_000))
     assert not reusable_report(report, ours)  # the weights changed since
     assert not reusable_report(tmp_path / "missing.json", ours)
+
+
+def test_the_recipes_refuse_a_corpus_without_its_cities_and_stages_that_do_not_rise(tmp_path):
+    import json
+
+    from lcpr_offline.lcpr_recipe import check_stages, require_corpus, trained_epochs
+
+    (tmp_path / "val_grid_s3.bag").mkdir()
+    with pytest.raises(SystemExit, match=r"missing \['val_k00_s45', 'test_grid_s7'"):
+        require_corpus(tmp_path)
+    check_stages([10, 20])
+    with pytest.raises(SystemExit, match=r"--stages \[20, 10\]: must rise"):
+        check_stages([20, 10])
+    assert trained_epochs(tmp_path) == 0
+    (tmp_path / "history.json").write_text(json.dumps([{"epoch": 0}, {"epoch": 7}]))
+    assert trained_epochs(tmp_path) == 7
