@@ -139,7 +139,8 @@ def range_image_tensor(points: torch.Tensor, *, preset: LidarPreset) -> torch.Te
     N x (>=3) points -> height x width float32; the same arithmetic in float64, the nearest point
     per pixel by a scatter-min. No point is selected by a mask (which would wait for the device to
     count them): dropped points go to a spare pixel instead. Equal to :func:`range_image` except where
-    a libm and the device's arctan / arcsin differ in the last bit at a pixel border.
+    a libm and the device's sqrt / arctan / arcsin differ in the last bits at a pixel border; on the CPU
+    torch's sqrt (MKL) is not always correctly rounded, which is why the CPU path uses the numpy one.
     """
     if points.dim() != 2 or points.shape[1] < 3:
         raise InputShapeError(f"points have shape {tuple(points.shape)}; expected N x 3 or more columns")
