@@ -236,6 +236,10 @@ class PoseGraphProof:
     ate_drifted: float  # m, RMSE of the drifted odometry against the truth (no alignment)
     ate_corrected: float  # m, of the optimised trajectory
     ratio: float  # ate_corrected / ate_drifted (1.0 when the drift is 0: a single pose)
+    # the same after the rigid transform that fits each best to the truth (Umeyama, as ``evo_ape --align``): drift
+    # before the first revisit moves the whole revisited part, which no loop can observe; this leaves it out
+    ate_drifted_aligned: float
+    ate_corrected_aligned: float
     loops_used: int  # loops added as between-factors (those with a pose)
     drift: DriftModel
     loops_skipped: int = 0  # loops without a pose (not added)
@@ -248,9 +252,18 @@ class PoseGraphProof:
     def to_dict(self) -> dict[str, Any]:
         return {
             "ate_drifted": self.ate_drifted, "ate_corrected": self.ate_corrected, "ratio": self.ratio,
+            "ate_drifted_aligned": self.ate_drifted_aligned, "ate_corrected_aligned": self.ate_corrected_aligned,
             "loops_used": self.loops_used, "loops_skipped": self.loops_skipped, "robust": self.robust,
             "poses": len(self.truth), "drift": dataclasses.asdict(self.drift),
         }
+
+    def text(self) -> str:
+        """One line: ATE before -> after from the first pose, and after the best rigid alignment."""
+        aligned = (self.ate_corrected_aligned / self.ate_drifted_aligned if self.ate_drifted_aligned > 0
+                   else 1.0)
+        return (f"ATE {self.ate_drifted:.2f} m drifted -> {self.ate_corrected:.2f} m with {self.loops_used} loops "
+                f"({self.ratio:.0%}); aligned {self.ate_drifted_aligned:.2f} -> {self.ate_corrected_aligned:.2f} m "
+                f"({aligned:.0%})")
 
     def write_plot(self, path: str | os.PathLike[str], *,
                    title: str = "Pose graph with verified loop closures") -> None:
@@ -283,7 +296,9 @@ def pose_graph_proof(
     with NaN in it, gets :data:`DEFAULT_LOOP_COVARIANCE`); loops without a pose are
     skipped. The graph is optimised by :func:`~lcpr_core.posegraph.optimize_pose_graph`
     (``config``: a Cauchy kernel on loop factors by default, so a wrong loop costs
-    little) and ATE is :func:`~lcpr_core.posegraph.ate_rmse` without alignment.
+    little) and ATE is :func:`~lcpr_core.posegraph.ate_rmse` without alignment (from the true first pose) and
+    after the best rigid alignment (what the loops can observe: drift before the first revisit moves the
+    revisited part as a whole).
     ``plot``: a path to write the top view (truth, drifted, optimised, loops) to as PNG;
     the returned proof keeps the trajectories, so :meth:`PoseGraphProof.write_plot` can
     draw it later too.
@@ -313,6 +328,8 @@ def pose_graph_proof(
     after = ate_rmse(result.optimized, truth)
     proof = PoseGraphProof(
         ate_drifted=before, ate_corrected=after, ratio=after / before if before > 0 else 1.0,
+        ate_drifted_aligned=ate_rmse(drifted, truth, align=True),
+        ate_corrected_aligned=ate_rmse(result.optimized, truth, align=True),
         loops_used=len(constraints), drift=drift, loops_skipped=skipped, robust=config.robust,
         truth=truth, drifted=drifted, corrected=result.optimized,
         loop_pairs=tuple((c.query, c.match) for c in constraints),

@@ -318,8 +318,7 @@ def report(args, truth: Truth, out, detector: dict, inputs: dict, replay_s: floa
     print(f"  candidates:         {detector.get('candidates verified', 0)} verified, "
           f"{detector.get('candidates rejected', 0)} rejected")
     if proof is not None:
-        print(f"  pose graph:         ATE {proof.ate_drifted:.2f} m drifted odometry -> {proof.ate_corrected:.2f} m "
-              f"with {proof.loops_used} loops ({proof.ratio:.0%}); plot {graph_png}")
+        print(f"  pose graph:         {proof.text()}; plot {graph_png}")
     elif proof_note:
         print(f"  {proof_note}")
     if backend is not None:

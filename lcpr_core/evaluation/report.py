@@ -170,8 +170,8 @@ def verification_table(report: EvaluationReport) -> str:
     row("latency    p50 / p90 ms (verify)", "-", _lat(verify))
     g = v.pose_graph
     if g is not None:
-        out.append(f"pose graph (seeded odometry drift, {g.loops_used} verified loops as between-factors, {g.robust} "
-                   f"kernel): ATE {g.ate_drifted:.2f} m drifted -> {g.ate_corrected:.2f} m optimised ({g.ratio:.0%})")
+        out.append(f"pose graph (seeded odometry drift, verified loops as between-factors, {g.robust} kernel): "
+                   f"{g.text()}")
     elif v.pose_graph_note:
         out.append(f"pose graph: {v.pose_graph_note}")
     if v.base_T_lidar_source:
