@@ -85,6 +85,7 @@ class Vseq2pcVerifyParams:
     consistency_m: float = DEFAULT_VERIFY.consistency.max_m  # m: an earlier pose moved on by odometry vs this one
     consistency_deg: float = DEFAULT_VERIFY.consistency.max_deg  # deg: the same for the rotation
     consistency_spacing: float = DEFAULT_VERIFY.consistency.spacing_m  # m of odometry travel between those queries
+    consistency_backfill: bool = DEFAULT_VERIFY.consistency.backfill  # a confirmed loop confirms its chain's too
 
     def __post_init__(self) -> None:
         try:
@@ -95,7 +96,7 @@ class Vseq2pcVerifyParams:
     def core(self) -> SequenceVerifyConfig:
         pseudo = replace(DEFAULT_VERIFY.pseudo, max_depth=self.max_depth, max_frames=self.max_frames)
         gate = ConsistencyConfig(count=self.consistency, max_m=self.consistency_m, max_deg=self.consistency_deg,
-                                 spacing_m=self.consistency_spacing)
+                                 spacing_m=self.consistency_spacing, backfill=self.consistency_backfill)
         return replace(DEFAULT_VERIFY, enabled=self.enabled, top_k=self.top_k, min_fitness=self.min_fitness,
                        min_support=self.min_support, pseudo=pseudo, consistency=gate)
 

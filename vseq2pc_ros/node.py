@@ -307,6 +307,13 @@ class Vseq2pcNode(NodeStats, Node):
         if not result.queries:
             return
         for query in result.queries:
+            if query.late:  # an earlier query's loop, confirmed by a later one (verify.consistency_backfill)
+                self.decisions.add("loops confirmed late")
+                self._candidates_pub.publish(candidates_msg(query.stamp, query.query_id, query.candidates))
+                if query.loop is not None:
+                    self._loop_pub.publish(loop_closure_msg(query.stamp, query.loop))
+                    self.loops += 1
+                continue
             self.queries += 1
             self.decisions.add("queries")
             if not query.candidates:

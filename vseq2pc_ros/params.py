@@ -72,6 +72,10 @@ DOCS: dict[str, ParamDoc] = {
     "verify.consistency_deg": ParamDoc("deg: the same for the rotation", 0.01, 180.0, dynamic=True),
     "verify.consistency_spacing": ParamDoc("m of odometry travel between the queries of the chain at least "
                                            "(0 = consecutive queries)", 0.0, 1000.0, dynamic=True),
+    "verify.consistency_backfill": ParamDoc("a loop the chain confirms also confirms the earlier queries of its "
+                                            "chain: their loops are published then, late (/diagnostics: 'frames "
+                                            "loops confirmed late'); false = only the confirming query's",
+                                            dynamic=True),
     "sequence.offsets": ParamDoc("m after the query frame of the sequence's later frames (ascending)"),
     "sequence.min_query_spacing": ParamDoc("m between query frames; 0 = every camera frame", 0.0, 1e6),
     "sequence.max_pending": ParamDoc("queries waiting for their last frame at most", 1, BIG),

@@ -7,17 +7,24 @@ a verified candidate of query q keeps ``verified`` only when each of the ``count
 (the latest query at least ``spacing_m`` of odometry travel before the previous member) has a verified pose
 that, chained with the odometry from that query to q, lands within ``max_m`` / ``max_deg`` of the candidate's.
 ``count`` 1 turns the gate off.
+
+With ``backfill`` (default), the loop a query publishes also confirms its chain members' agreeing poses: an earlier
+query that was held back for want of a chain gets its loop then (:meth:`ConsistencyGate.confirm`), late but with the
+same evidence, so every query of a consistent stretch has a loop, not only those after its first ``count - 1``.
 """
 from __future__ import annotations
 
 import dataclasses
 from collections import deque
-from dataclasses import dataclass
+from collections.abc import Hashable
+from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 
 from ..errors import InvalidValueError
 from ..geometry import invert, is_rigid, rotation_angle_deg
+from ..verification import ACCEPTED
 from .retrieval import ScanMatch
 
 __all__ = ["INCONSISTENT", "ConsistencyConfig", "ConsistencyGate", "map_camera_pose"]
@@ -31,7 +38,7 @@ MAX_HISTORY = 512  # queries kept at most
 class ConsistencyConfig:
     """count: queries in the chain, this one included (1 = off). max_m / max_deg: how far an earlier query's
     verified camera pose, moved on by odometry, may land from this query's. spacing_m: odometry travel between
-    chain members at least (0 = consecutive queries)."""
+    chain members at least (0 = consecutive queries). backfill: a confirmed query confirms its chain members too."""
 
     # vseq2pc_eval --verify on the validation drive (citysim seed 43, exact depth): the most recall that keeps precision
     # 1.0 with a margin (see lcpr_core.vseq2pc.verify_eval.choose and docs/vseq2pc_verification.md)
@@ -39,11 +46,14 @@ class ConsistencyConfig:
     max_m: float = 0.5
     max_deg: float = 2.0
     spacing_m: float = 5.0  # the evaluation's queries (every 4th 1.5 m frame) are 6 m apart
+    backfill: bool = True  # a published loop also confirms its chain members' agreeing poses (late loops)
 
     def __post_init__(self) -> None:
         if isinstance(self.count, bool) or not isinstance(self.count, int) or not 1 <= self.count <= 16:
             raise InvalidValueError(f"verify.consistency={self.count!r} (queries in the chain); accepted: an "
                                     "integer in 1..16 (1 = off)")
+        if not isinstance(self.backfill, bool):
+            raise InvalidValueError(f"verify.consistency_backfill={self.backfill!r}; accepted: true or false")
         if not (np.isfinite(self.max_m) and self.max_m > 0 and np.isfinite(self.max_deg) and self.max_deg > 0):
             raise InvalidValueError(f"verify.consistency_m={self.max_m!r}, verify.consistency_deg={self.max_deg!r}; "
                                     "both must be finite and > 0")
@@ -59,11 +69,20 @@ def map_camera_pose(candidate: ScanMatch) -> np.ndarray | None:
     return T if np.isfinite(T).all() else None
 
 
-@dataclass(frozen=True)
+@dataclass
 class _Record:
     travel: float  # m of odometry travel (straight lines between successive queries) up to this query
     odom_T_base: np.ndarray  # 4 x 4
     placed: tuple[np.ndarray, ...]  # verified camera poses in the map, 4 x 4 each
+    indices: tuple[int, ...] = ()  # each placed pose's index in the caller's list
+    scores: tuple[float, ...] = ()  # each placed pose's score (fitness): the best agreeing one is confirmed late
+    key: Hashable = None  # the caller's name for the query (returned by confirm)
+    payload: object = None  # what admit_all keeps of the query: its candidates as admitted, the verified ones' indices
+    confirmed: bool = False  # a loop of this query was confirmed (at its own time or later)
+    # per pose of the caller's list: for each chain member (newest first), the position in its placed poses of
+    # the one that agreed (None where the pose was not confirmed)
+    agreed: list[tuple[int, ...] | None] = field(default_factory=list)
+    chain: tuple[_Record, ...] = ()
 
 
 class ConsistencyGate:
@@ -100,9 +119,12 @@ class ConsistencyGate:
             i -= 1
         return members
 
-    def admit_poses(self, odom_T_base: np.ndarray | None, placed: list[np.ndarray | None]) -> list[bool]:
+    def admit_poses(self, odom_T_base: np.ndarray | None, placed: list[np.ndarray | None], *,
+                    key: Hashable = None, scores: list[float] | None = None) -> list[bool]:
         """Per verified camera pose of this query (4 x 4 in the map, None if unknown): does the chain confirm it?
-        Records the query. A query without odometry resets the history (nothing chains across it)."""
+        Records the query (as ``key``, with each pose's score, e.g. its fitness: of an earlier query's poses that
+        agree with a later loop, the best scored is the one confirmed late). A query without odometry resets the
+        history (nothing chains across it)."""
         cfg = self.config
         odom = None if odom_T_base is None else np.asarray(odom_T_base, np.float64)
         if odom is None or odom.size != 16 or not is_rigid(odom.reshape(4, 4)) or not self.usable:
@@ -113,31 +135,85 @@ class ConsistencyGate:
         last = self._history[-1] if self._history else None
         travel = 0.0 if last is None else last.travel + float(np.linalg.norm(odom[:3, 3] - last.odom_T_base[:3, 3]))
         verdicts = [True] * len(placed)
+        agreed: list[tuple[int, ...] | None] = [None] * len(placed)
+        chain = self._chain(travel) if cfg.count > 1 else []
         if cfg.count > 1:
-            chain = self._chain(travel)
             for n, pose in enumerate(placed):
-                verdicts[n] = chain is not None and pose is not None and all(
-                    self._agrees(member, odom, pose) for member in chain)
-        self._history.append(_Record(travel, odom, tuple(p for p in placed if p is not None)))
+                found = None if chain is None or pose is None else [self._agrees(m, odom, pose) for m in chain]
+                verdicts[n] = found is not None and all(f is not None for f in found)
+                agreed[n] = tuple(f for f in found if f is not None) if verdicts[n] and found else None
+        kept = [n for n, p in enumerate(placed) if p is not None]
+        poses = tuple(p for p in placed if p is not None)
+        if last is not None:  # only the latest query can confirm: the older ones drop their chain (bounded memory)
+            last.chain, last.agreed = (), []
+        score = [0.0] * len(placed) if scores is None else [float(v) for v in scores]
+        self._history.append(_Record(travel, odom, poses, tuple(kept),
+                                     tuple(score[n] for n in kept), key, agreed=agreed, chain=tuple(chain or ())))
         return verdicts
 
-    def _agrees(self, member: _Record, odom: np.ndarray, pose: np.ndarray) -> bool:
-        """Some verified pose of ``member``, moved on by the odometry to this query, lands near ``pose``."""
+    def confirm(self, index: int) -> list[tuple[Hashable, int]]:
+        """The latest query publishes its pose ``index`` (one that :meth:`admit_poses` admitted): returns, oldest
+        first, the chain members it confirms that had no loop yet, as (their key, index in their pose list); with
+        ``backfill`` off, none. Each query is returned at most once."""
+        return [(member.key, i) for member, i in self._confirm(index)]
+
+    def _confirm(self, index: int) -> list[tuple[_Record, int]]:
+        if not self._history:
+            return []
+        record = self._history[-1]
+        record.confirmed = True
+        agreed = record.agreed[index] if 0 <= index < len(record.agreed) else None
+        if not self.config.backfill or agreed is None:
+            return []
+        late = []
+        for member, position in zip(record.chain, agreed, strict=True):
+            if not member.confirmed:
+                member.confirmed = True
+                late.append((member, member.indices[position]))
+        return late[::-1]
+
+    def _agrees(self, member: _Record, odom: np.ndarray, pose: np.ndarray) -> int | None:
+        """The position of a verified pose of ``member`` that, moved on by the odometry to this query, lands near
+        ``pose`` (the best scored such, then the nearest), or None."""
         # the member's camera -> this query's camera, by odometry
         cam_T_cam = self._L_inv @ invert(member.odom_T_base) @ odom @ self.lidar_T_cam
         inv = invert(pose)
-        for earlier in member.placed:
+        best, best_key = None, (-np.inf, -np.inf)
+        for position, earlier in enumerate(member.placed):
             d = inv @ earlier @ cam_T_cam
-            if np.linalg.norm(d[:3, 3]) <= self.config.max_m and rotation_angle_deg(d[:3, :3]) <= self.config.max_deg:
-                return True
-        return False
+            m = float(np.linalg.norm(d[:3, 3]))
+            rank = (member.scores[position], -m)
+            if m <= self.config.max_m and rotation_angle_deg(d[:3, :3]) <= self.config.max_deg and rank > best_key:
+                best, best_key = position, rank
+        return best
 
     def admit(self, odom_T_base: np.ndarray | None, candidates: list[ScanMatch]) -> list[ScanMatch]:
         """The query's candidates with those verified but unconfirmed by the chain turned ``INCONSISTENT``."""
+        return self.admit_all(odom_T_base, candidates)[0]
+
+    def admit_all(self, odom_T_base: np.ndarray | None, candidates: list[ScanMatch], *, key: Hashable = None
+                  ) -> tuple[list[ScanMatch], list[tuple[Hashable, list[ScanMatch]]]]:
+        """:meth:`admit`, and the earlier queries whose loop this query's loop (its best confirmed candidate: best
+        fitness, then rank) confirms late: (their key, their candidates as admitted then with the confirmed one
+        verified again), oldest first."""
         idx = [i for i, c in enumerate(candidates) if c.verified]
-        verdicts = self.admit_poses(odom_T_base, [map_camera_pose(candidates[i]) for i in idx])
+        verdicts = self.admit_poses(odom_T_base, [map_camera_pose(candidates[i]) for i in idx], key=key,
+                                    scores=[candidates[i].fitness for i in idx])
         out = list(candidates)
         for i, ok in zip(idx, verdicts, strict=True):
             if not ok:
                 out[i] = dataclasses.replace(candidates[i], verified=False, verification=INCONSISTENT)
-        return out
+        if self._history:
+            self._history[-1].payload = (out, idx)  # what a later confirmation turns verified
+        passed = [n for n, ok in enumerate(verdicts) if ok and out[idx[n]].verified]
+        if not passed:
+            return out, []
+        best = max(passed, key=lambda n: (out[idx[n]].fitness, -out[idx[n]].rank))
+        late = []
+        for member, n in self._confirm(best):
+            their, their_idx = cast(tuple[list[ScanMatch], list[int]], member.payload)
+            i = their_idx[n]
+            again = list(their)
+            again[i] = dataclasses.replace(their[i], verified=True, verification=ACCEPTED)
+            late.append((member.key, again))
+        return out, late

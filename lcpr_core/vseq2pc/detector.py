@@ -19,8 +19,9 @@ Verification (``verify.enabled``, on by default; :mod:`lcpr_core.vseq2pc.verify`
 cloud; each camera frame keeps its depth back-projected (:func:`~lcpr_core.vseq2pc.pseudo_cloud.frame_cloud`);
 a completed query stacks its frames (the query frame to the last member) with odometry into a pseudo-cloud and
 registers it against its best ``verify.top_k`` candidates; a verified candidate stays verified only when the
-earlier queries confirm its camera pose (``verify.consistency``, :mod:`lcpr_core.vseq2pc.consistency`).
-``SequenceQuery.loop`` is then the verified candidate
+earlier queries confirm its camera pose (``verify.consistency``, :mod:`lcpr_core.vseq2pc.consistency`); a query
+whose loop is so confirmed also confirms the earlier queries of its chain, which come again in ``result.queries``
+with ``late=True`` (``verify.consistency.backfill``). ``SequenceQuery.loop`` is then the verified candidate
 with the best fitness (None when none passed); candidates come verified first (best fitness first). A frame whose
 depth, intrinsics or pose cannot give a cloud leaves its queries' candidates unverified with the reason
 (:data:`~lcpr_core.vseq2pc.pseudo_cloud.INPUT_REASONS`); nothing is raised.
@@ -32,7 +33,9 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections import OrderedDict
+from collections.abc import Hashable
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 
@@ -100,6 +103,9 @@ class SequenceQuery:
     stamp: float  # its stamp
     candidates: list[ScanMatch]  # each at or above min_probability; verified first (best fitness), then by rank
     verification: bool = False  # candidates were verified (the loop must be a verified one)
+    # an earlier query again, its loop confirmed late by a later query's (verify.consistency_backfill); its
+    # candidates then, with the confirmed one verified
+    late: bool = False
 
     @property
     def loop(self) -> ScanMatch | None:
@@ -199,11 +205,16 @@ class SequenceDetector:
         tic = time.perf_counter()
         for q, found in enumerate(matches):
             kept = [m for m in found if m.probability >= min_p]
+            query_id, stamp = int(batch.query_indices[q]), float(batch.query_stamps[q])
+            late: list[tuple[Hashable, list[ScanMatch]]] = []
             if verify:
                 kept = self._verify(batch, q, kept, result.errors)
-                kept = self.verifier.confirm(batch.poses[q, 0], kept, lidar_T_cam=self.config.extrinsics())
-            result.queries.append(SequenceQuery(int(batch.query_indices[q]), float(batch.query_stamps[q]), kept,
-                                                verification=verify))
+                kept, late = self.verifier.confirm_all(batch.poses[q, 0], kept, lidar_T_cam=self.config.extrinsics(),
+                                                       key=(query_id, stamp))
+            result.queries.append(SequenceQuery(query_id, stamp, kept, verification=verify))
+            for key, candidates in late:
+                late_id, late_stamp = cast(tuple[int, float], key)
+                result.queries.append(SequenceQuery(late_id, late_stamp, candidates, verification=True, late=True))
         if verify:
             result.timings["verify"] = time.perf_counter() - tic
             self._forget_before(int(batch.query_indices[-1]))

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -168,10 +168,17 @@ class SequenceVerifier:
                 ) -> list[ScanMatch]:
         """The query's verified candidates that the earlier queries confirm (``verify.consistency``), re-ranked;
         the others turn "inconsistent". Call it for every query in stream order, those without candidates too."""
+        return self.confirm_all(odom_T_base, candidates, lidar_T_cam=lidar_T_cam)[0]
+
+    def confirm_all(self, odom_T_base: np.ndarray | None, candidates: list[ScanMatch], *, lidar_T_cam: np.ndarray,
+                    key: Hashable = None) -> tuple[list[ScanMatch], list[tuple[Hashable, list[ScanMatch]]]]:
+        """:meth:`confirm`, and the earlier queries (by their ``key``) whose loop this query's loop confirms late
+        (``verify.consistency_backfill``), their candidates re-ranked with the confirmed one verified."""
         L = np.asarray(lidar_T_cam, np.float64).reshape(4, 4)
         if self._gate is None or not np.array_equal(self._gate.lidar_T_cam, L):
             self._gate = ConsistencyGate(self.config.consistency, lidar_T_cam=L)
-        return rerank(self._gate.admit(odom_T_base, candidates))
+        admitted, late = self._gate.admit_all(odom_T_base, candidates, key=key)
+        return rerank(admitted), [(k, rerank(c)) for k, c in late]
 
     def restart(self) -> None:
         """A new session: odometry does not chain across it, the consistency history is dropped."""

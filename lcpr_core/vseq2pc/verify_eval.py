@@ -25,7 +25,7 @@ import json
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from tqdm import tqdm
@@ -35,7 +35,7 @@ from ..errors import InvalidValueError
 from ..geometry import rotation_angle_deg
 from ..pretrained import default_vseq2pc_weights
 from ..verification.clouds import dequantise
-from .consistency import ConsistencyConfig, ConsistencyGate, map_camera_pose
+from .consistency import MAX_HISTORY, ConsistencyConfig, ConsistencyGate, map_camera_pose
 from .net import Vseq2pcNet
 from .pseudo_cloud import accumulate
 from .retrieval import ScanDatabase, ScanMatch, SearchConfig
@@ -269,12 +269,18 @@ def published(outcomes: list[QueryOutcome], setting: Setting, *, lidar_T_cam: np
     then the temporal-consistency gate (:class:`~lcpr_core.vseq2pc.consistency.ConsistencyGate`, the node's)."""
     vcfg = SequenceVerifyConfig()
     gate = ConsistencyGate(setting.consistency, lidar_T_cam=lidar_T_cam)
-    out: list[Accepted | None] = []
-    for o in outcomes:
-        verified = _verified(o, setting, vcfg)
-        ok = gate.admit_poses(o.odom, [a.placed for a in verified])
-        passed = [a for a, y in zip(verified, ok, strict=True) if y]
-        out.append(max(passed, key=lambda a: a.fitness) if passed else None)
+    out: list[Accepted | None] = [None] * len(outcomes)
+    verified_of: dict[int, list[Accepted]] = {}
+    for q, o in enumerate(outcomes):
+        verified = verified_of[q] = _verified(o, setting, vcfg)
+        ok = gate.admit_poses(o.odom, [a.placed for a in verified], key=q, scores=[a.fitness for a in verified])
+        passed = [n for n, y in enumerate(ok) if y]
+        if passed:
+            best = max(passed, key=lambda n: verified[n].fitness)
+            out[q] = verified[best]
+            for earlier, n in gate.confirm(best):  # loops confirmed late (ConsistencyConfig.backfill)
+                out[cast(int, earlier)] = verified_of[cast(int, earlier)][n]
+        verified_of.pop(q - MAX_HISTORY, None)
     return out
 
 
@@ -392,6 +398,8 @@ def variant_report(val: list[QueryOutcome], test: list[QueryOutcome], never: lis
     defaults = SequenceVerifyConfig()
     settings = {"previous": PREVIOUS,
                 "no_gate": Setting(defaults.min_support, defaults.min_fitness, ConsistencyConfig(count=1)),
+                "no_backfill": Setting(defaults.min_support, defaults.min_fitness,
+                                       replace(defaults.consistency, backfill=False)),
                 "default": Setting.of(defaults)}
     chosen = choose(val, lidar_T_cam=lidar_T_cam, precision=precision)
     if chosen is not None:
@@ -449,30 +457,31 @@ def _f(v: object, spec: str = ".2f") -> str:
     return "-" if v is None else format(v, spec)
 
 
-ROWS = (("previous", "before the gate"), ("no_gate", "default, k=1"), ("default", "default"),
-        ("chosen", "chosen on val"))
+ROWS = (("previous", "before the gate"), ("no_gate", "default, k=1"), ("no_backfill", "default, no late"),
+        ("default", "default"), ("chosen", "chosen on val"))
 
 
 def table(report: dict[str, Any]) -> str:
     """The held-out drive's numbers per depth variant: retrieval alone, then verified loops with the defaults before
-    the temporal gate, today's defaults without the gate (k=1) and with it, and this variant's validation choice."""
-    lines = ["variant  method          setting                         published wrong precision recall max F1  "
+    the temporal gate, today's defaults without the gate (k=1), with it but no late loops (backfill off), as they are,
+    and this variant's validation choice."""
+    lines = ["variant  method           setting                         published wrong precision recall max F1  "
              "pose m med/p95  pose deg med/p95  val pub/wrong/recall  never-revisit loops"]
     for variant, entry in report["variants"].items():
         test, val = entry["test"], entry["validation"]
         never = entry.get("never") or {}
         r = test["retrieval"]
-        lines.append(f"{variant:8} retrieval alone {'most probable scan':31} {r['published']:9d} {r['wrong']:5d} "
+        lines.append(f"{variant:8} retrieval alone  {'most probable scan':31} {r['published']:9d} {r['wrong']:5d} "
                      f"{r['precision']:9.2f} {r['recall']:6.2f} {r['max_f1']:6.2f}  {'':14}  {'':16}  "
                      f"{'':20}  {_f(never.get('retrieval_published'), 'd')}")
         for key, name in ROWS:
             if key not in test:
-                lines.append(f"{variant:8} {name:15} {'no setting keeps the precision':31} {0:9d}")
+                lines.append(f"{variant:8} {name:16} {'no setting keeps the precision':31} {0:9d}")
                 continue
             v, w = test[key], val[key]
             st = v["setting"]
             label = Setting(st["min_support"], st["min_fitness"], ConsistencyConfig(**st["consistency"])).label()
-            lines.append(f"{variant:8} {name:15} {label:31} {v['published']:9d} {v['wrong']:5d} "
+            lines.append(f"{variant:8} {name:16} {label:31} {v['published']:9d} {v['wrong']:5d} "
                          f"{v['precision']:9.2f} {v['recall']:6.2f} {v['max_f1']:6.2f}  "
                          f"{_f(v['pose_m_median'])}/{_f(v['pose_m_p95']):9}  "
                          f"{_f(v['pose_deg_median'])}/{_f(v['pose_deg_p95']):11}  "
@@ -482,8 +491,9 @@ def table(report: dict[str, Any]) -> str:
 
 
 def plot(curves: dict[str, Any], report: dict[str, Any], path: Path) -> None:
-    """Held-out drive: precision and recall against the fitness threshold without and with the temporal gate, one
-    colour per depth variant; and the wrong loops published at each threshold."""
+    """Held-out drive: precision and recall against the fitness threshold without the temporal gate, with it but
+    without late loops, and the default, one colour per depth variant; and the wrong loops published at each
+    threshold."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -491,7 +501,7 @@ def plot(curves: dict[str, Any], report: dict[str, Any], path: Path) -> None:
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(12, 4.5))
     for i, (variant, named) in enumerate(curves.items()):
         colour = f"C{i}"
-        for name, style in (("no_gate", ":"), ("default", "-")):
+        for name, style in (("no_gate", ":"), ("no_backfill", "--"), ("default", "-")):
             c = named.get(name)
             if c is None:
                 continue
@@ -510,7 +520,7 @@ def plot(curves: dict[str, Any], report: dict[str, Any], path: Path) -> None:
     bx.set_ylabel("wrong loops published")
     bx.grid(alpha=0.3)
     bx.legend(fontsize=7)
-    bx.set_title("wrong loops: no gate (k=1) vs the default gate")
+    bx.set_title("wrong loops: no gate (k=1), the gate without and with late loops")
     fig.tight_layout()
     save_figure(fig, path)
     plt.close(fig)

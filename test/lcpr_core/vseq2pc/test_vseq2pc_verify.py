@@ -203,13 +203,27 @@ def test_with_the_temporal_gate_the_detector_publishes_a_loop_only_after_earlier
         drive: Drive) -> None:
     gate = ConsistencyConfig(count=2, spacing_m=4.0)  # camera frames 2.5 m apart: the chain reaches 2 queries back
     plain = run(detector(drive, verify=SHORT_DRIVE_VERIFY), drive.cameras)
-    gated = run(detector(drive, verify=replace(SHORT_DRIVE_VERIFY, consistency=gate)), drive.cameras)
+    both = run(detector(drive, verify=replace(SHORT_DRIVE_VERIFY, consistency=gate)), drive.cameras)
+    gated = [q for q in both if not q.late]
     assert [q.query_id for q in gated] == [q.query_id for q in plain]
     for q in gated[:2]:  # no query 4 m before them: nothing confirms their registrations
         assert q.loop is None and any(c.verification == INCONSISTENT for c in q.candidates)
     for p, q in zip(plain[2:], gated[2:], strict=True):  # the true place stays consistent: the same loop
         assert q.loop is not None and p.loop is not None and q.loop.id == p.loop.id
         np.testing.assert_allclose(q.loop.match_T_query, p.loop.match_T_query)
+    # the queries after them confirm them: their loops come late, once each, the same as without the gate
+    late = [q for q in both if q.late]
+    assert [q.query_id for q in late] == [q.query_id for q in gated[:2]]
+    for p, q in zip(plain[:2], late, strict=True):
+        assert q.loop is not None and p.loop is not None and q.loop.id == p.loop.id and q.stamp == p.stamp
+        np.testing.assert_allclose(q.loop.match_T_query, p.loop.match_T_query)
+
+
+def test_without_backfill_the_held_back_queries_never_get_their_loop(drive: Drive) -> None:
+    gate = ConsistencyConfig(count=2, spacing_m=4.0, backfill=False)
+    queries = run(detector(drive, verify=replace(SHORT_DRIVE_VERIFY, consistency=gate)), drive.cameras)
+    assert not any(q.late for q in queries)
+    assert queries[0].loop is None and queries[1].loop is None and queries[2].loop is not None
 
 
 def test_without_verification_the_loop_is_the_most_probable_candidate_unverified(drive: Drive) -> None:

@@ -47,6 +47,44 @@ def test_a_loop_is_published_once_the_earlier_queries_confirm_its_camera_pose_th
     assert _drive(gate, truth, odom) == [False, False, True, True, True]
 
 
+def test_the_first_confirmed_loop_also_confirms_its_chain_members_once_each_and_late() -> None:
+    truth = [_pose(2.0 * i, 1.0, 10.0) for i in range(5)]
+    gate = ConsistencyGate(ConsistencyConfig(count=3, spacing_m=0.0), lidar_T_cam=LIDAR_T_CAM)
+    lates = []
+    for q, world_T_base in enumerate(truth):
+        scan = _pose(world_T_base[0, 3] - 3.0)
+        out, late = gate.admit_all(world_T_base, [_candidate(0, scan, world_T_base)], key=q)
+        lates.append(late)
+        assert out[0].verified == (q >= 2)
+    # query 2 confirms queries 0 and 1 (oldest first); queries 3 and 4 confirm nobody new
+    assert [key for key, _ in lates[2]] == [0, 1] and lates[3] == [] and lates[4] == []
+    for _, candidates in lates[2]:
+        assert candidates[0].verified and candidates[0].verification == "accepted"
+
+
+def test_a_look_alike_is_never_confirmed_late() -> None:
+    gate = ConsistencyGate(ConsistencyConfig(count=2, spacing_m=0.0), lidar_T_cam=LIDAR_T_CAM)
+    odom = [_pose(2.0 * i) for i in range(2)]
+    gate.admit_all(odom[0], [_candidate(0, _pose(80.0), _pose(85.0))], key="look-alike")  # 83 m off the truth
+    out, late = gate.admit_all(odom[1], [_candidate(1, _pose(0.0), _pose(2.0))], key="true")
+    assert not out[0].verified and late == []
+
+
+def test_without_backfill_a_confirmed_loop_confirms_nobody_else() -> None:
+    gate = ConsistencyGate(ConsistencyConfig(count=2, spacing_m=0.0, backfill=False), lidar_T_cam=LIDAR_T_CAM)
+    gate.admit_all(_pose(0.0), [_candidate(0, _pose(0.0), _pose(0.0))], key=0)
+    out, late = gate.admit_all(_pose(2.0), [_candidate(0, _pose(0.0), _pose(2.0))], key=1)
+    assert out[0].verified and late == []
+
+
+def test_only_the_latest_query_keeps_its_chain_so_the_history_does_not_grow_a_linked_list() -> None:
+    gate = ConsistencyGate(ConsistencyConfig(count=3, spacing_m=0.0), lidar_T_cam=LIDAR_T_CAM)
+    for i in range(6):
+        gate.admit(_pose(2.0 * i), [_candidate(0, _pose(0.0), _pose(2.0 * i))])
+    records = list(gate._history)
+    assert all(r.chain == () for r in records[:-1]) and len(records[-1].chain) == 2
+
+
 def test_a_look_alike_place_that_jumps_between_queries_is_refused_as_inconsistent() -> None:
     gate = ConsistencyGate(ConsistencyConfig(count=2, spacing_m=0.0), lidar_T_cam=LIDAR_T_CAM)
     odom = [_pose(2.0 * i) for i in range(3)]
@@ -146,12 +184,17 @@ def test_the_evaluation_replays_the_gate_so_an_isolated_wrong_loop_is_not_publis
     no_gate = metrics(outcomes, published(outcomes, Setting(1, 0.7, ConsistencyConfig(count=1)),
                                           lidar_T_cam=LIDAR_T_CAM))
     assert (no_gate["published"], no_gate["wrong"]) == (4, 2)
+    held = metrics(outcomes, published(outcomes, Setting(1, 0.7, ConsistencyConfig(count=2, backfill=False)),
+                                       lidar_T_cam=LIDAR_T_CAM))
+    assert (held["published"], held["wrong"], held["precision"]) == (2, 0, 1.0)  # queries at 6 and 12 m
+    assert held["recall"] == pytest.approx(2 / 4)
     gated = metrics(outcomes, published(outcomes, Setting(1, 0.7, ConsistencyConfig(count=2)),
                                         lidar_T_cam=LIDAR_T_CAM))
-    assert (gated["published"], gated["wrong"], gated["precision"]) == (2, 0, 1.0)  # queries at 6 and 12 m
-    assert gated["recall"] == pytest.approx(2 / 4)
+    assert (gated["published"], gated["wrong"], gated["precision"]) == (3, 0, 1.0)  # and the one at 0 m, late
+    assert gated["recall"] == pytest.approx(3 / 4)
     sweep = {"lidar_T_cam": LIDAR_T_CAM, "precision": 1.0, "supports": (1,), "tolerances": ((1.0, 3.0),),
              "thresholds": (0.7, 0.75, 0.8)}
     chosen = choose(outcomes, counts=(2, 3), **sweep)  # type: ignore[arg-type]
-    assert chosen is not None and chosen.consistency.count == 2 and chosen.min_support == 1  # the most recall
+    # the longer chain closes as many queries once it confirms its members late: ties go to the stricter gate
+    assert chosen is not None and chosen.consistency.count == 3 and chosen.min_support == 1
     assert choose(outcomes, counts=(1, 2), **sweep) is None  # type: ignore[arg-type]  # the margin: k=1 is wrong
