@@ -307,21 +307,17 @@ class Vseq2pcNode(NodeStats, Node):
         if not result.queries:
             return
         for query in result.queries:
-            if query.late:  # an earlier query's loop, confirmed by a later one (verify.consistency_backfill)
+            if query.late:  # an earlier query's loop, confirmed by a later one: counted once, at its own time
                 self.decisions.add("loops confirmed late")
-                self._candidates_pub.publish(candidates_msg(query.stamp, query.query_id, query.candidates))
-                if query.loop is not None:
-                    self._loop_pub.publish(loop_closure_msg(query.stamp, query.loop))
-                    self.loops += 1
-                continue
-            self.queries += 1
-            self.decisions.add("queries")
-            if not query.candidates:
-                self.decisions.add("queries without candidates")
-                continue
-            for candidate in query.candidates:
-                if candidate.verification != "off":
-                    self.verdicts.add(candidate.verification)
+            else:
+                self.queries += 1
+                self.decisions.add("queries")
+                if not query.candidates:
+                    self.decisions.add("queries without candidates")
+                    continue
+                for candidate in query.candidates:
+                    if candidate.verification != "off":
+                        self.verdicts.add(candidate.verification)
             self._candidates_pub.publish(candidates_msg(query.stamp, query.query_id, query.candidates))
             if query.loop is None:
                 self.decisions.add("queries without a verified candidate")

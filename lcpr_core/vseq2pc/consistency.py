@@ -17,7 +17,7 @@ from __future__ import annotations
 import dataclasses
 from collections import deque
 from collections.abc import Hashable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import cast
 
 import numpy as np
@@ -79,10 +79,6 @@ class _Record:
     key: Hashable = None  # the caller's name for the query (returned by confirm)
     payload: object = None  # what admit_all keeps of the query: its candidates as admitted, the verified ones' indices
     confirmed: bool = False  # a loop of this query was confirmed (at its own time or later)
-    # per pose of the caller's list: for each chain member (newest first), the position in its placed poses of
-    # the one that agreed (None where the pose was not confirmed)
-    agreed: list[tuple[int, ...] | None] = field(default_factory=list)
-    chain: tuple[_Record, ...] = ()
 
 
 class ConsistencyGate:
@@ -97,10 +93,15 @@ class ConsistencyGate:
         self.lidar_T_cam, self._L_inv = L, invert(L)  # 4 x 4
         self.usable = is_rigid(L)  # extrinsics that are not a rigid transform confirm nothing (never raise in a worker)
         self._history: deque[_Record] = deque(maxlen=MAX_HISTORY)
+        # the latest query's chain (newest first) and, per pose of its list, the position in each member's placed
+        # poses of the one that agreed (None where the pose was not confirmed): what confirm reads
+        self._chain_of_latest: tuple[_Record, ...] = ()
+        self._agreed: list[tuple[int, ...] | None] = []
 
     def reset(self) -> None:
         """Forget the history (a new session: odometry does not chain across it)."""
         self._history.clear()
+        self._chain_of_latest, self._agreed = (), []
 
     def _chain(self, travel: float) -> list[_Record] | None:
         """The count - 1 earlier chain members, newest first; None when the history has no such chain."""
@@ -144,11 +145,9 @@ class ConsistencyGate:
                 agreed[n] = tuple(f for f in found if f is not None) if verdicts[n] and found else None
         kept = [n for n, p in enumerate(placed) if p is not None]
         poses = tuple(p for p in placed if p is not None)
-        if last is not None:  # only the latest query can confirm: the older ones drop their chain (bounded memory)
-            last.chain, last.agreed = (), []
         score = [0.0] * len(placed) if scores is None else [float(v) for v in scores]
-        self._history.append(_Record(travel, odom, poses, tuple(kept),
-                                     tuple(score[n] for n in kept), key, agreed=agreed, chain=tuple(chain or ())))
+        self._history.append(_Record(travel, odom, poses, tuple(kept), tuple(score[n] for n in kept), key))
+        self._chain_of_latest, self._agreed = tuple(chain or ()), agreed
         return verdicts
 
     def confirm(self, index: int) -> list[tuple[Hashable, int]]:
@@ -160,13 +159,12 @@ class ConsistencyGate:
     def _confirm(self, index: int) -> list[tuple[_Record, int]]:
         if not self._history:
             return []
-        record = self._history[-1]
-        record.confirmed = True
-        agreed = record.agreed[index] if 0 <= index < len(record.agreed) else None
+        self._history[-1].confirmed = True
+        agreed = self._agreed[index] if 0 <= index < len(self._agreed) else None
         if not self.config.backfill or agreed is None:
             return []
         late = []
-        for member, position in zip(record.chain, agreed, strict=True):
+        for member, position in zip(self._chain_of_latest, agreed, strict=True):
             if not member.confirmed:
                 member.confirmed = True
                 late.append((member, member.indices[position]))

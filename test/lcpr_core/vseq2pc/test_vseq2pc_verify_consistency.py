@@ -82,7 +82,9 @@ def test_only_the_latest_query_keeps_its_chain_so_the_history_does_not_grow_a_li
     for i in range(6):
         gate.admit(_pose(2.0 * i), [_candidate(0, _pose(0.0), _pose(2.0 * i))])
     records = list(gate._history)
-    assert all(r.chain == () for r in records[:-1]) and len(records[-1].chain) == 2
+    assert not any(isinstance(v, tuple) and any(isinstance(x, type(r)) for x in v)
+                   for r in records for v in vars(r).values())  # no record refers to another
+    assert len(gate._chain_of_latest) == 2 and all(m in records for m in gate._chain_of_latest)
 
 
 def test_a_look_alike_place_that_jumps_between_queries_is_refused_as_inconsistent() -> None:
