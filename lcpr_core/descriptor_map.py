@@ -325,10 +325,12 @@ class DescriptorMap(RowAccess):
         ids = self._rows.ids[pos].tolist()
         stamps = self._rows.stamps[pos].tolist()
         poses = self._rows.poses[pos]
+        known = (~np.isnan(poses).all(axis=1)).tolist()
         codes = self._source_codes.view()[pos].tolist()
         out = []
-        for rank, (i, d, s, p, c) in enumerate(zip(ids, dist.tolist(), stamps, poses, codes, strict=True)):
-            pose = None if np.isnan(p).all() else (float(p[0]), float(p[1]), float(p[2]))
+        for rank, (i, d, s, p, c, k) in enumerate(zip(ids, dist.tolist(), stamps, poses.tolist(), codes, known,
+                                                      strict=True)):
+            pose = (p[0], p[1], p[2]) if k else None
             out.append(Match(id=i, distance=d, stamp=s, pose=pose, source=self._source_names[c], rank=rank))
         return out
 

@@ -36,6 +36,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Generic, TypeVar, cast
@@ -58,7 +59,15 @@ from lcpr_core.evaluation import (
 )
 from lcpr_core.keyframes import KeyframeConfig
 from lcpr_core.lcpr.describer import Describer, ModelConfig
-from lcpr_core.lcpr.detector import Candidate, DetectorConfig, Frame, LoopDetector, MatchConfig, Result
+from lcpr_core.lcpr.detector import (
+    Candidate,
+    DescribedBatch,
+    DetectorConfig,
+    Frame,
+    LoopDetector,
+    MatchConfig,
+    Result,
+)
 from lcpr_core.lcpr.preprocess.camera import CameraInput
 from lcpr_core.lidar_odometry import KissConfig, KissOdometry
 from lcpr_core.loop_report import PublishedLoop, pose_graph_proof
@@ -82,6 +91,9 @@ OUTPUT_FILES = ("report.json", "pr_curve.png", "latency.png", "trajectory.png")
 POSEGRAPH_FILE = "posegraph.png"  # written besides OUTPUT_FILES when the pose-graph proof ran
 BACKEND_FILE = "backend.png"  # written besides OUTPUT_FILES with odometry="kiss-icp"
 ODOMETRY_SOURCES = ("bag", "kiss-icp")  # what gives the detector its poses
+AUTO_BATCH = 0  # EvalOptions.batch: 1 frame per network call on the CPU, CUDA_BATCH on a GPU
+#: frames per network call on a GPU by default: one CUDA graph of that batch, inputs decoded together
+CUDA_BATCH = 16
 
 
 @dataclass(frozen=True)
@@ -106,7 +118,9 @@ class EvalOptions:
     base_frame: str = BASE_FRAME  # the odometry's child frame: base_T_lidar = /tf_static base_frame -> cloud frame
     drift_seed: int = 0  # seed of the odometry drift of the pose-graph proof
     pose_graph: bool = True  # run the pose-graph proof with the verified loops (needs gtsam)
-    batch: int = 1  # frames whose keyframes are described in one network call (matched in order, as online)
+    # frames whose keyframes are described in one network call (matched in order, as online); AUTO_BATCH: 1 on
+    # the CPU, CUDA_BATCH on a GPU
+    batch: int = 0
     lidar_only: bool = False  # no cameras read: every frame described with all camera slots empty
     odometry: str = "bag"  # the detector's poses: the bag's odometry, or "kiss-icp" on its clouds (then the back end)
 
@@ -120,8 +134,8 @@ class EvalOptions:
                 raise InvalidValueError(f"{name}={value!r}; it must be >= 0")
         if not self.radius > 0:
             raise InvalidValueError(f"radius={self.radius!r}; it must be a positive distance in metres")
-        if self.batch < 1:
-            raise InvalidValueError(f"batch={self.batch!r}; it must be >= 1 frame")
+        if self.batch < 0:
+            raise InvalidValueError(f"batch={self.batch!r}; it must be >= 1 frame, or {AUTO_BATCH} (auto)")
         if self.lidar_only and self.topics.cameras:
             raise InvalidValueError(f"lidar_only with camera topics {list(self.topics.cameras)}; give no camera topics")
         if not self.lidar_only and self.model.num_cameras != len(self.topics.cameras):
@@ -274,42 +288,45 @@ def evaluate_bag(
     """Run the detector (and the baseline) over a bag and evaluate both; nothing is written."""
     opts = options if options is not None else EvalOptions()
     start = time.perf_counter()
-    config = DetectorConfig(
-        model=opts.model, keyframe=opts.keyframe,
-        match=MatchConfig(top_k=max(N_VALUES), max_distance=COLLECT_ALL, exclude_recent_s=opts.exclude_recent_s),
-        verify=opts.verify, submap=opts.submap,
-    )
-    sc_cfg = None if opts.scan_context is None else dataclasses.replace(
-        opts.scan_context, exclude_recent_s=opts.exclude_recent_s)
-    matcher = None if sc_cfg is None else ScanContextMatcher(sc_cfg)
-    record = _RunRecord(LoopDetector(config, describer=describer), matcher)
-    if opts.odometry == "kiss-icp":
-        record.odometry = _KissRun(bag, opts)
-    setup = time.perf_counter() - start
-    stream = read_frames(bag, topics=opts.topics, slop=opts.slop, decode_compressed=False,
-                         min_cameras=0 if opts.lidar_only else 1)
+    batch = frames_per_call(opts)
+    reading: dict[str, Any] = dict(topics=opts.topics, slop=opts.slop, decode_compressed=False,
+                                   min_cameras=0 if opts.lidar_only else 1)
+    stream = read_frames(bag, **reading)
+    frames: Prefetched[SensorFrame] | None = None
     total = len(stream) if not opts.limit else min(opts.limit, len(stream))
     bar = progress_bar(total, desc="lcpr_eval", unit="frame", enabled=progress)
-    batch = opts.batch
-    pending: list[SensorFrame] = []
-    frames = Prefetched(stream, depth=2 * batch + 4)  # the bag is read while the detector works
     try:
-        for frame in frames:
-            if opts.limit and record.frames + len(pending) >= opts.limit:
-                break
-            pending.append(frame)
-            if len(pending) >= batch:
-                _steps(pending, record)
-                bar.update(len(pending))
-                bar.set_postfix(keyframes=len(record.stamps), refresh=False)
-                pending = []
-        if pending:
-            _steps(pending, record)
-            bar.update(len(pending))
+        config = DetectorConfig(
+            model=opts.model, keyframe=opts.keyframe,
+            match=MatchConfig(top_k=max(N_VALUES), max_distance=COLLECT_ALL, exclude_recent_s=opts.exclude_recent_s),
+            verify=opts.verify, submap=opts.submap,
+        )
+        sc_cfg = None if opts.scan_context is None else dataclasses.replace(
+            opts.scan_context, exclude_recent_s=opts.exclude_recent_s)
+        matcher = None if sc_cfg is None else ScanContextMatcher(sc_cfg)
+        record = _RunRecord(LoopDetector(config, describer=describer), matcher)
+        if opts.odometry == "kiss-icp":
+            record.odometry = _KissRun(bag, opts)
+        record.detector.describer.reserve(batch)  # a GPU captures a graph of that batch
+        setup = time.perf_counter() - start
+        frames = Prefetched(stream, depth=2 * batch + 4)  # the bag is read while the detector works
+        with _Pipeline(record, bar, overlap=record.odometry is None) as pipeline:
+            pending: list[SensorFrame] = []
+            for frame in frames:
+                if opts.limit and record.frames + pipeline.queued + len(pending) >= opts.limit:
+                    break
+                pending.append(frame)
+                if len(pending) >= batch:
+                    pipeline.add(pending)
+                    pending = []
+            if pending:
+                pipeline.add(pending)
     finally:
-        frames.close()
+        if frames is not None:
+            frames.close()
         stream.close()
         bar.close()
+    detect = time.perf_counter() - start - setup
     stats = dataclasses.asdict(stream.stats)
     counts = {
         "frames": record.frames, "frames_in_bag": len(stream), "keyframes": len(record.stamps),
@@ -324,8 +341,15 @@ def evaluate_bag(
     if record.odometry is not None:
         report.backend = record.odometry.evaluate()
         report.counts["backend"] = "run" if report.backend is not None else "not run (no frame with a cloud and a pose)"
-    report.wall_time_s, report.setup_time_s = time.perf_counter() - start, setup
+    report.wall_time_s, report.setup_time_s, report.detect_time_s = time.perf_counter() - start, setup, detect
     return report
+
+
+def frames_per_call(opts: EvalOptions) -> int:
+    """``opts.batch``, or for AUTO_BATCH what suits the device: CUDA_BATCH frames on a GPU, one on the CPU."""
+    if opts.batch != AUTO_BATCH:
+        return opts.batch
+    return CUDA_BATCH if str(opts.model.device).startswith("cuda") else 1
 
 
 def base_T_lidar_of(bag: str | os.PathLike[str], lidar_frame: str | None, *, base_frame: str = BASE_FRAME,
@@ -377,16 +401,57 @@ def _verified(record: _RunRecord, opts: EvalOptions, report: EvaluationReport,
                                base_T_lidar_source=source)
 
 
-def _steps(frames: list[SensorFrame], record: _RunRecord) -> None:
-    """Frames through the detector (keyframes described in one batch), then recorded in order."""
-    det_frames = [to_detector_frame(frame, cameras=record.detector.config.model.num_cameras) for frame in frames]
-    if record.odometry is not None:  # the detector runs on KISS-ICP's poses; the bag's stay the truth
-        det_frames = [record.odometry.step(frame, det) for frame, det in zip(frames, det_frames, strict=True)]
-    for frame, det_frame, result in zip(frames, det_frames, record.detector.process_batch(det_frames),
-                                        strict=True):
-        _record(frame, det_frame, result, record)
-        if record.odometry is not None:
-            record.odometry.result(det_frame, result)
+class _Pipeline:
+    """Batches of frames through the detector: each batch's keyframes described (one network call) on a worker
+    thread while the batch before is matched and stored here, in order (``overlap``; else one after the other).
+    A GPU then decodes and runs the network for the next batch while the CPU searches the map."""
+
+    def __init__(self, record: _RunRecord, bar: Any, *, overlap: bool) -> None:
+        self.record, self.bar, self.overlap = record, bar, overlap
+        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="lcpr-describe")
+        self._waiting: tuple[list[SensorFrame], list[Frame], Future[DescribedBatch]] | None = None
+
+    @property
+    def queued(self) -> int:
+        """Frames handed over but not yet recorded."""
+        return 0 if self._waiting is None else len(self._waiting[0])
+
+    def add(self, frames: list[SensorFrame]) -> None:
+        record = self.record
+        det_frames = [to_detector_frame(frame, cameras=record.detector.config.model.num_cameras) for frame in frames]
+        if record.odometry is not None:  # the detector runs on KISS-ICP's poses; the bag's stay the truth
+            det_frames = [record.odometry.step(frame, det) for frame, det in zip(frames, det_frames, strict=True)]
+        described = self._worker.submit(record.detector.describe_batch, det_frames)
+        if self.overlap:
+            self.finish()  # the batch before, stored while this one is described
+            self._waiting = (frames, det_frames, described)
+        else:
+            self._waiting = (frames, det_frames, described)
+            self.finish()
+
+    def finish(self) -> None:
+        """Store and record the batch waiting, if any."""
+        if self._waiting is None:
+            return
+        frames, det_frames, described = self._waiting
+        self._waiting = None
+        results = self.record.detector.store_batch(described.result())
+        for frame, det_frame, result in zip(frames, det_frames, results, strict=True):
+            _record(frame, det_frame, result, self.record)
+            if self.record.odometry is not None:
+                self.record.odometry.result(det_frame, result)
+        self.bar.update(len(frames))
+        self.bar.set_postfix(keyframes=len(self.record.stamps), refresh=False)
+
+    def __enter__(self) -> _Pipeline:
+        return self
+
+    def __exit__(self, kind: object, *_: object) -> None:
+        try:
+            if kind is None:
+                self.finish()
+        finally:
+            self._worker.shutdown(wait=True, cancel_futures=True)
 
 
 def _record(frame: SensorFrame, det_frame: Frame, result: Result, record: _RunRecord) -> None:

@@ -29,6 +29,8 @@ from lcpr_core.pretrained import SEEDED, command_weights, describe_weights, reso
 from lcpr_core.scan_context import ScanContextConfig
 from lcpr_core.verification import SUBMAP_MODES, SubmapConfig, VerifierConfig
 from lcpr_offline.lcpr_evaluate import (  # noqa: F401 - the evaluation's API, importable from the command's module too
+    AUTO_BATCH,
+    CUDA_BATCH,
     LIDAR_FOR_TOPICS,
     N_VALUES,
     ODOMETRY_SOURCES,
@@ -68,10 +70,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     g.add_argument("--threads", type=int, default=0, help="torch threads (default: torch's choice)")
     g.add_argument("--device", default=None,
                    help="torch device, e.g. cuda:0 (default cpu, or the parameter file's model.device)")
-    g.add_argument("--batch", type=int, default=1,
-                   help="frames whose keyframes are described in one network call, then matched in order as "
-                        "online (default 1: on the H100 measured, one replayed CUDA graph per keyframe beat eager "
-                        "batches of 32)")
+    g.add_argument("--batch", type=int, default=AUTO_BATCH,
+                   help=f"frames whose keyframes are described in one network call, then matched in order as "
+                        f"online (default: {CUDA_BATCH} on a GPU, one CUDA graph of that batch with the frames' JPEGs "
+                        f"decoded together; 1 on the CPU)")
     g.add_argument("--decode", choices=DECODERS, default=NODE.detector.model.decode,
                    help="camera decoding, as the node's model.decode (default %(default)s: nvJPEG on a GPU, "
                         "reduced-size libjpeg-turbo on the CPU)")
@@ -179,7 +181,8 @@ def _evaluation_options(args: argparse.Namespace) -> dict[str, Any]:
                 scan_context=None if args.no_scan_context else ScanContextConfig(lidar_height=args.lidar_height),
                 sc_max_distance=args.sc_max_distance, limit=args.limit, warmup=args.warmup,
                 split_offset=args.split_offset, base_frame=args.base_frame, drift_seed=args.drift_seed,
-                batch=args.batch, lidar_only=args.lidar_only or args.topics == "scans", odometry=args.odometry)
+                batch=args.batch, lidar_only=args.lidar_only or args.topics == "scans",
+                odometry=args.odometry)
 
 
 def _without_cameras(topics: Topics) -> Topics:

@@ -5,7 +5,7 @@ import dataclasses
 import functools
 import logging
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -27,7 +27,7 @@ from .models import LCPR
 from .preprocess import CUSTOM, range_image
 from .preprocess.camera import CameraInput
 from .preprocess.cameras import CameraPreprocessor
-from .preprocess.range_image import points_array, range_image_tensor
+from .preprocess.range_image import points_array, range_images_tensor
 from .runtime import Backend, Choice, choose_backend
 from .turn_average import TURNS, TurnedNetwork, average_turns, turn_average_in, turned_batch
 from .whitening import Whitening, whitening_in
@@ -126,6 +126,25 @@ class Prepared:
 
 
 @dataclass
+class PreparedBatch:
+    """Several frames' network inputs and, per frame, the cameras whose images could not be used."""
+
+    images: torch.Tensor  # B x N x 3 x H x W, on the model's device
+    ranges: torch.Tensor  # B x 1 x h x w
+    failed: list[dict[int, str]]  # per frame: camera slot -> why its image was left out
+
+
+def prepare_each(prepare: Callable[[Sequence[CameraInput | None], np.ndarray], Prepared],
+                 frames: Sequence[tuple[Sequence[CameraInput | None], np.ndarray]]) -> PreparedBatch:
+    """Frames preprocessed one by one by ``prepare``, joined into one batch."""
+    one = [prepare(images, points) for images, points in frames]
+    if len(one) == 1:
+        return PreparedBatch(one[0].images, one[0].ranges, [one[0].failed])
+    return PreparedBatch(torch.cat([p.images for p in one]), torch.cat([p.ranges for p in one]),
+                         [p.failed for p in one])
+
+
+@dataclass
 class Describer:
     """Raw cameras + cloud -> a 256-d unit descriptor, with the configured precision."""
 
@@ -168,8 +187,8 @@ class Describer:
                                  and self.config.precision != "int8")
         network: LCPR | TurnedNetwork = TurnedNetwork(self.model).eval() if self.turns_in_network else self.model
         # a frame is one network pass, or one batch of the six turns: what a GPU path captures
-        rows = TURNS if self.turn_average and not self.turns_in_network else 1
-        self.choice: Choice = choose_backend(self.config, network, batch=rows)
+        self.rows = TURNS if self.turn_average and not self.turns_in_network else 1
+        self.choice: Choice = choose_backend(self.config, network, batch=self.rows)
         self.backend: Backend = self.choice.backend  # the path descriptors are computed on
         self._ranges_on_device = torch.device(self.config.device).type == "cuda"
 
@@ -216,13 +235,36 @@ class Describer:
         assert ranges is not None
         return Prepared(cams.unsqueeze(0), ranges[None, None], failed)
 
-    def range_tensor(self, points: np.ndarray) -> torch.Tensor:
-        """N x >=3 points -> h x w range image on the model's device (computed there on a GPU)."""
+    def prepare_many(self, frames: Sequence[tuple[Sequence[CameraInput | None], np.ndarray]]) -> PreparedBatch:
+        """Several frames (images, points) preprocessed for one network call. On a GPU their JPEGs are decoded
+        in one nvJPEG call and their clouds projected in one pass; elsewhere frame by frame (the CPU path
+        already shares each frame out to its pool). Each frame's inputs equal :meth:`prepare`'s."""
+        counts = {len(images) for images, _ in frames}
+        if len(frames) < 2 or not self._ranges_on_device or len(counts) != 1:
+            return prepare_each(self.prepare, frames)
+        images, failed = self.cameras.many([images for images, _ in frames])
+        return PreparedBatch(images, self.range_tensors([points for _, points in frames])[:, None], failed)
+
+    def reserve(self, frames: int) -> None:
+        """Make calls of ``frames`` frames fast: a GPU path captures a graph for that batch too (offline
+        evaluation's ``--batch``); other paths need nothing."""
+        reserve = getattr(self.backend, "reserve", None)
+        if reserve is not None and frames > 1:
+            reserve(frames * self.rows)
+
+    def range_tensors(self, clouds: Sequence[np.ndarray]) -> torch.Tensor:
+        """B clouds (N_b x >=3 points) -> B x h x w range images on the model's device: on the CPU by the numpy
+        projection, on a GPU uploaded as one array and projected there in one pass."""
         preset = self.config.range_preset
         if not self._ranges_on_device:
-            return torch.from_numpy(range_image(points, preset=preset))
-        xyz = torch.from_numpy(np.ascontiguousarray(points_array(points)[:, :3], dtype=np.float32))
-        return range_image_tensor(xyz.to(self.config.device, non_blocking=True), preset=preset)
+            return torch.stack([torch.from_numpy(range_image(points, preset=preset)) for points in clouds])
+        xyz = [np.asarray(points_array(points)[:, :3], dtype=np.float32) for points in clouds]
+        flat = torch.from_numpy(np.concatenate(xyz)).to(self.config.device, non_blocking=True)
+        return range_images_tensor(list(flat.split([len(p) for p in xyz])), preset=preset)
+
+    def range_tensor(self, points: np.ndarray) -> torch.Tensor:
+        """N x >=3 points -> h x w range image on the model's device (computed there on a GPU)."""
+        return self.range_tensors([points])[0]
 
     def describe_tensors(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:
         """Batched model inputs -> B x 256 float32 unit descriptors (whitened and averaged over the turns

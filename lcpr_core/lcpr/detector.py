@@ -45,7 +45,6 @@ from dataclasses import dataclass, field
 from typing import TypedDict, cast
 
 import numpy as np
-import torch
 
 from ..descriptor_map import DescriptorMap, MapConfig, Match
 from ..errors import InvalidValueError, MapSchemaError, VerificationError
@@ -189,6 +188,15 @@ class Result:
 REASONS = ("keyframe", "too soon", "not moved", "no lidar", "out of order")
 
 
+@dataclass
+class DescribedBatch:
+    """Frames whose keyframes are described but not yet matched or stored (:meth:`LoopDetector.describe_batch`)."""
+
+    results: list[Result]  # one per frame, in order; keyframes' filled in by LoopDetector.store_batch
+    keyframes: list[tuple[Frame, Result]]
+    descriptors: np.ndarray  # K x D, one row per keyframe
+
+
 class LoopDetector:
     """Keyframing, description and matching against a growing descriptor map."""
 
@@ -263,6 +271,12 @@ class LoopDetector:
         matched, stored and verified one by one in order: each searches only the keyframes before it, as
         :meth:`process` on each frame would. Keyframing depends on stamps and poses only, so it is decided first.
         """
+        return self.store_batch(self.describe_batch(frames))
+
+    def describe_batch(self, frames: Sequence[Frame]) -> DescribedBatch:
+        """The first half of :meth:`process_batch`: keyframes decided and described, nothing matched or stored.
+        The next batch may be described while this one is stored (:meth:`store_batch`), from another thread,
+        as long as batches are described in order and stored in that order."""
         decided = (self._kf_stamp, self._last_position)
         results, keyframes = [], []
         for frame in frames:
@@ -278,32 +292,35 @@ class LoopDetector:
                 if frame.pose is not None:
                     self._last_position = np.asarray(frame.pose, np.float64)[:3, 3]
         if not keyframes:
-            return results
+            return DescribedBatch(results, [], np.zeros((0, self.map.dim), np.float32))
         try:
             descriptors = self._describe(keyframes)
         except Exception:
             self._kf_stamp, self._last_position = decided  # nothing was stored: keyframing goes on as before
             raise
-        for (frame, result), desc in zip(keyframes, descriptors, strict=True):
+        return DescribedBatch(results, keyframes, descriptors)
+
+    def store_batch(self, batch: DescribedBatch) -> list[Result]:
+        """The second half of :meth:`process_batch`: each described keyframe matched, stored and verified in
+        order; the batch's results."""
+        for (frame, result), desc in zip(batch.keyframes, batch.descriptors, strict=True):
             self._store(frame, result, desc)
-        return results
+        return batch.results
 
     def _describe(self, keyframes: list[tuple[Frame, Result]]) -> np.ndarray:
         """K x D descriptors of the keyframes, one network call; cameras that could not be used are marked."""
-        prepared = []
-        for frame, result in keyframes:
-            tic = time.perf_counter()
-            points = frame.points if frame.points is not None else np.zeros((0, 3), np.float32)
-            p = self.describer.prepare(frame.images, points)
-            if p.failed:  # unusable images: those cameras count as missing (degraded frame)
-                result.missing_cameras = tuple(sorted(set(result.missing_cameras) | set(p.failed)))
-                result.camera_errors = dict(p.failed)
-            prepared.append(p)
-            result.timings["preprocess"] = time.perf_counter() - tic
         tic = time.perf_counter()
-        images = prepared[0].images if len(prepared) == 1 else torch.cat([p.images for p in prepared])
-        ranges = prepared[0].ranges if len(prepared) == 1 else torch.cat([p.ranges for p in prepared])
-        descriptors = self.describer.describe_tensors(images, ranges)
+        batch = self.describer.prepare_many(
+            [(frame.images, frame.points if frame.points is not None else np.zeros((0, 3), np.float32))
+             for frame, _ in keyframes])
+        share = (time.perf_counter() - tic) / len(keyframes)
+        for (_, result), failed in zip(keyframes, batch.failed, strict=True):
+            if failed:  # unusable images: those cameras count as missing (degraded frame)
+                result.missing_cameras = tuple(sorted(set(result.missing_cameras) | set(failed)))
+                result.camera_errors = dict(failed)
+            result.timings["preprocess"] = share
+        tic = time.perf_counter()
+        descriptors = self.describer.describe_tensors(batch.images, batch.ranges)
         share = (time.perf_counter() - tic) / len(keyframes)
         for _, result in keyframes:
             result.timings["network"] = share

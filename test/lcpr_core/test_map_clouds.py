@@ -12,7 +12,7 @@ from test_verification import pose, pose_error, scene, view
 
 from lcpr_core.descriptor_map import SCHEMA_VERSION, DescriptorMap, MapConfig, Match
 from lcpr_core.errors import MapError, VerificationError
-from lcpr_core.lcpr.describer import Describer, Prepared
+from lcpr_core.lcpr.describer import Describer, Prepared, prepare_each
 from lcpr_core.lcpr.detector import DetectorConfig, Frame, LoopDetector, MatchConfig
 from lcpr_core.verification import REJECT_REASONS, CloudConfig, CloudStore, VerifierConfig, compact_cloud
 from lcpr_core.verification.processes import CloudRef
@@ -224,6 +224,9 @@ class KeyedDescriber:
 
     def prepare(self, images, points):
         return Prepared(*self.inputs(images, points))
+
+    def prepare_many(self, frames):
+        return prepare_each(self.prepare, frames)
 
     def describe_tensors(self, images, ranges):
         return self.table[images[0]][None]

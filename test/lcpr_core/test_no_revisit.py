@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from lcpr_core.lcpr.describer import Describer, Prepared
+from lcpr_core.lcpr.describer import Describer, Prepared, prepare_each
 from lcpr_core.lcpr.detector import DetectorConfig, Frame, LoopDetector, MatchConfig
 
 
@@ -24,6 +24,9 @@ class AnyPlace:
 
     def prepare(self, images, points):
         return Prepared(*self.inputs(images, points))
+
+    def prepare_many(self, frames):
+        return prepare_each(self.prepare, frames)
 
     def describe_tensors(self, images, ranges):
         v = self.rng.normal(size=256).astype(np.float32)

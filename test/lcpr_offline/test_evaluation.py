@@ -476,3 +476,15 @@ def test_lcpr_eval_refuses_a_params_file_with_flags_that_set_the_same_things(tmp
     bad = tmp_path / "bad.yaml"
     bad.write_text("/**:\n  ros__parameters:\n    match:\n      top_kk: 3\n")
     assert main([str(tmp_path / "bag"), "--params-file", str(bad)]) == 2
+
+
+def test_the_evaluation_describes_sixteen_frames_per_network_call_on_a_gpu_and_one_on_the_cpu_unless_told():
+    from lcpr_core.errors import InvalidValueError
+    from lcpr_core.lcpr.describer import ModelConfig
+    from lcpr_offline.lcpr_evaluate import CUDA_BATCH, EvalOptions, frames_per_call
+
+    assert frames_per_call(EvalOptions()) == 1
+    assert frames_per_call(EvalOptions(model=ModelConfig(device="cuda:0"))) == CUDA_BATCH == 16
+    assert frames_per_call(EvalOptions(batch=4, model=ModelConfig(device="cuda:0"))) == 4
+    with pytest.raises(InvalidValueError, match=r"batch=-2; it must be >= 1 frame, or 0 \(auto\)"):
+        EvalOptions(batch=-2)

@@ -183,6 +183,33 @@ class CameraPreprocessor:
         done = out, failed, None if beside is None else beside()
         return lambda: done
 
+    def many(self, frames: Sequence[Sequence[CameraInput | None]]) -> tuple[torch.Tensor, list[dict[int, str]]]:
+        """Several frames' images, N slots each -> (B x N x 3 x H x W on ``device``, per frame {slot: why its
+        image was left out}). Decoded together (nvJPEG: every frame's JPEGs in one call; turbo: in the pool),
+        then resized and normalised frame by frame, which bounds the float copies to one frame's images.
+        Each frame's result equals :meth:`__call__`'s."""
+        if not frames or not frames[0]:
+            raise InputShapeError("no frames or no camera images given; expected one image slot per camera")
+        count = len(frames[0])
+        if any(len(images) != count for images in frames):
+            raise InputShapeError(f"frames with {sorted({len(images) for images in frames})} camera slots; "
+                                  f"every frame of a batch needs the same number ({count})")
+        out = torch.empty(len(frames), count, 3, *self.size, device=self.device)  # B x N x 3 x H x W
+        failed: list[dict[int, str]] = [{} for _ in frames]
+        if self.decoder == "pil":
+            for b, images in enumerate(frames):
+                out[b], failed[b] = self(images)
+            return out, failed
+        pixels, bad = self.decode([image for images in frames for image in images])
+        for k, why in bad.items():
+            failed[k // count][k % count] = why
+        per_frame: list[dict[int, torch.Tensor]] = [{} for _ in frames]
+        for k, value in pixels.items():
+            per_frame[k // count][k % count] = value
+        for b, frame_pixels in enumerate(per_frame):
+            out[b] = self.assemble(frame_pixels, count)
+        return out, failed
+
     def _small(self, count: int) -> bool:
         """Whether ``count`` images at this size are under :data:`SMALL_RESIZE`: decoded in the pool, then resized
         in one batch on one thread (six tiny per-image resizes cost more in dispatch than they share out)."""

@@ -142,9 +142,21 @@ def range_image_tensor(points: torch.Tensor, *, preset: LidarPreset) -> torch.Te
     a libm and the device's sqrt / arctan / arcsin differ in the last bits at a pixel border; on the CPU
     torch's sqrt (MKL) is not always correctly rounded, which is why the CPU path uses the numpy one.
     """
-    if points.dim() != 2 or points.shape[1] < 3:
-        raise InputShapeError(f"points have shape {tuple(points.shape)}; expected N x 3 or more columns")
+    return range_images_tensor([points], preset=preset)[0]
+
+
+def range_images_tensor(clouds: list[torch.Tensor], *, preset: LidarPreset) -> torch.Tensor:
+    """:func:`range_image_tensor` of B clouds at once -> B x height x width: one pass of the arithmetic and one
+    scatter-min over all their points (a frame's dozen kernels launched once per batch, not once per cloud).
+    Each result equals that cloud's :func:`range_image_tensor`: the arithmetic is per point."""
+    for points in clouds:
+        if points.dim() != 2 or points.shape[1] < 3:
+            raise InputShapeError(f"points have shape {tuple(points.shape)}; expected N x 3 or more columns")
+    if not clouds:
+        raise InputShapeError("no clouds given; expected at least one N x 3 cloud")
     _check_config(preset)
+    device = clouds[0].device
+    points = clouds[0][:, :3] if len(clouds) == 1 else torch.cat([c[:, :3] for c in clouds])
     x, y, z = (points[:, k].to(torch.float64) for k in range(3))
     keep = torch.isfinite(x + y + z) & ~((x.abs() < preset.min_xy) & (y.abs() < preset.min_xy))
     if preset.yaw_offset_deg != 0:
@@ -152,12 +164,18 @@ def range_image_tensor(points: torch.Tensor, *, preset: LidarPreset) -> torch.Te
         x, y = c * x - s * y, s * x + c * y
     rng = torch.sqrt(x * x + y * y + z * z)
     keep &= (rng > 0) & (rng < preset.max_range)
-    spare = preset.height * preset.width  # where dropped points land
+    pixels = preset.height * preset.width
+    spare = len(clouds) * pixels  # where dropped points land
     pixel = _pixels(torch.atan2(y, x), torch.asin(z / rng), preset, torch, valid=keep, spare=spare)
-    image = torch.full((spare + 1,), float("inf"), dtype=torch.float64, device=points.device)
+    if len(clouds) > 1:  # cloud b's pixels are the b-th block of the flat image
+        counts = torch.tensor([c.shape[0] for c in clouds], device=device)
+        offsets = torch.repeat_interleave(torch.arange(len(clouds), device=device) * pixels, counts,
+                                          output_size=points.shape[0])
+        pixel = torch.where(keep, pixel + offsets, pixel)
+    image = torch.full((spare + 1,), float("inf"), dtype=torch.float64, device=device)
     image.scatter_reduce_(0, pixel, torch.where(keep, rng, torch.inf), reduce="amin")
     image = image[:spare].masked_fill_(torch.isinf(image[:spare]), NO_RETURN)
-    return image.to(torch.float32).view(preset.height, preset.width)
+    return image.to(torch.float32).view(len(clouds), preset.height, preset.width)
 
 
 def _pixels(azimuth: Any, elevation: Any, cfg: LidarPreset, xp: Any, *, valid: Any = None, spare: int = 0) -> Any:

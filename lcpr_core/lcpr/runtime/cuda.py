@@ -9,8 +9,11 @@
 Each path sets the switches it needs around every call and restores them, so two describers in
 one process (or a user's own model) keep their own. :class:`GraphBackend` captures one forward
 pass of a fixed batch (the node's: one frame, or its six turns) in a CUDA graph and replays it:
-the launch overhead of the network's ~200 kernels is most of a pass at batch 1. A batch of
-another size runs eagerly; a capture that fails leaves the eager path, with a warning.
+the launch overhead of the network's ~200 kernels is most of a pass at batch 1. :meth:`GraphBackend.reserve`
+captures another graph for a larger batch (offline evaluation describes many frames per call); a
+batch between captured sizes is padded into the next larger graph (rows are independent: the
+network is in eval mode). A larger batch runs eagerly; a capture that fails leaves the eager path,
+with a warning.
 """
 from __future__ import annotations
 
@@ -75,7 +78,8 @@ def gpu_name(device: str | torch.device) -> str:
 
 
 class GraphBackend:
-    """A CUDA graph of one forward pass for a fixed batch, replayed; other batches run eagerly."""
+    """CUDA graphs of one forward pass for fixed batches, replayed; a smaller batch is padded into the next
+    captured size, a larger one runs eagerly."""
 
     def __init__(self, model: LCPR | TurnedNetwork, *, device: str, precision: str, batch: int,
                  warmup: int = 3) -> None:
@@ -85,42 +89,63 @@ class GraphBackend:
             raise RuntimeSetupError(f"precision={precision!r} cannot be captured; accepted: {CUDA_PRECISIONS}")
         self.eager = TorchBackend(model, device=device, precision=precision)
         self.name, self.runtime = precision, "torch"
-        self.model, self.device, self.batch = model, torch.device(device), batch
-        self.graph: torch.cuda.CUDAGraph | None = None
-        images, ranges = model.example_inputs(batch)
-        self._images, self._ranges = images.to(self.device), ranges.to(self.device)
-        try:
-            self._capture(warmup)
-        except (RuntimeError, torch.cuda.OutOfMemoryError) as err:
-            self.graph = None
-            log.warning("LCPR: CUDA graph capture of the %s network (batch %d) failed (%s); running it eagerly",
-                        precision, batch, err)
+        self.model, self.device, self.batch, self.warmup = model, torch.device(device), batch, warmup
+        #: batch size -> (graph, its input images, its input ranges, its output), smallest first
+        self._graphs: dict[int, tuple[torch.cuda.CUDAGraph, torch.Tensor, torch.Tensor, torch.Tensor]] = {}
+        self.reserve(batch)
 
-    def _capture(self, warmup: int) -> None:
+    def reserve(self, batch: int) -> bool:
+        """Capture a graph for ``batch`` rows too (if not yet); False, with a warning, where the capture fails
+        (out of memory, say): such batches then run eagerly."""
+        if batch in self._graphs:
+            return True
+        images, ranges = self.model.example_inputs(batch)
+        images, ranges = images.to(self.device), ranges.to(self.device)
+        try:
+            graph, out = self._capture(images, ranges)
+        except (RuntimeError, torch.cuda.OutOfMemoryError) as err:
+            log.warning("LCPR: CUDA graph capture of the %s network (batch %d) failed (%s); running it eagerly",
+                        self.name, batch, err)
+            torch.cuda.empty_cache()
+            return False
+        self._graphs[batch] = (graph, images, ranges, out)
+        self._graphs = dict(sorted(self._graphs.items()))
+        return True
+
+    def _capture(self, images: torch.Tensor, ranges: torch.Tensor) -> tuple[torch.cuda.CUDAGraph, torch.Tensor]:
         side = torch.cuda.Stream(self.device)
         side.wait_stream(torch.cuda.current_stream(self.device))
         with torch.cuda.stream(side), numerics(self.device, self.name):
-            for _ in range(warmup):  # cuDNN picks its kernels and the allocator its blocks before capture
-                self.model(self._images, self._ranges)
+            for _ in range(self.warmup):  # cuDNN picks its kernels and the allocator its blocks before capture
+                self.model(images, ranges)
         torch.cuda.current_stream(self.device).wait_stream(side)
         graph = torch.cuda.CUDAGraph()
         with numerics(self.device, self.name), torch.cuda.graph(graph):
-            self._out = self.model(self._images, self._ranges)
-        self.graph = graph
+            out = self.model(images, ranges)
+        return graph, out
 
     @property
     def captured(self) -> bool:
-        return self.graph is not None
+        """Whether a graph of the batch this backend was built for exists."""
+        return self.batch in self._graphs
+
+    @property
+    def batches(self) -> tuple[int, ...]:
+        """The batch sizes with a captured graph."""
+        return tuple(self._graphs)
 
     def __call__(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:
-        if self.graph is None or images.shape[0] != self.batch:
+        rows = images.shape[0]
+        size = next((b for b in self._graphs if b >= rows), None)
+        if size is None:
             return self.eager(images, ranges)
+        graph, static_images, static_ranges, out = self._graphs[size]
         try:
-            self._images.copy_(images, non_blocking=True)
-            self._ranges.copy_(ranges, non_blocking=True)
-            self.graph.replay()
-            return self._out.float().cpu().numpy()
+            static_images[:rows].copy_(images, non_blocking=True)
+            static_ranges[:rows].copy_(ranges, non_blocking=True)
+            graph.replay()
+            return out[:rows].float().cpu().numpy()
         except RuntimeError as err:  # a broken graph must not stop the node: the eager path stays
             log.warning("LCPR: CUDA graph replay failed (%s); running the network eagerly from now on", err)
-            self.graph = None
+            self._graphs.clear()
             return self.eager(images, ranges)

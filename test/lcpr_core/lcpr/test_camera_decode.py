@@ -18,7 +18,7 @@ from lcpr_core.lcpr.preprocess import PRESETS
 from lcpr_core.lcpr.preprocess.cameras import CameraPreprocessor, resolve_decoder
 from lcpr_core.lcpr.preprocess.dataset_files import find_nuscenes_keyframe
 from lcpr_core.lcpr.preprocess.decode import jpeg_size, reduction
-from lcpr_core.lcpr.preprocess.range_image import range_image_tensor
+from lcpr_core.lcpr.preprocess.range_image import NO_RETURN, range_image_tensor, range_images_tensor
 from lcpr_core.lcpr.runtime.cuda import float32_math
 from lcpr_core.pretrained import default_weights
 
@@ -148,6 +148,46 @@ def test_the_torch_range_image_matches_the_numpy_one_on_the_real_sweeps_but_for_
             assert got.dtype == np.float32 and got.shape == expected.shape
             differing = int(np.count_nonzero(got != expected))
             assert differing <= 8, f"{name}: {differing} of {expected.size} pixels differ"
+
+
+def test_several_clouds_projected_in_one_pass_each_give_their_own_range_image(keyframes):
+    first, second = (points for _, points in keyframes)
+    broken = second.copy()
+    broken[::7, 0] = np.nan  # non-finite points are dropped, as in one cloud alone
+    clouds = [first, np.zeros((0, 3), np.float32), broken]
+    got = range_images_tensor([torch.from_numpy(c) for c in clouds], preset=PRESETS["nuscenes_lidar_top"]).numpy()
+    assert got.shape == (3, 32, 1056)
+    assert (got[1] == NO_RETURN).all()  # an empty cloud: no return anywhere, nothing from its neighbours
+    for k in (0, 2):
+        differing = int(np.count_nonzero(got[k] != range_image(clouds[k], preset="nuscenes_lidar_top")))
+        assert differing <= 8, f"cloud {k}: {differing} pixels differ"  # MKL's sqrt at pixel borders (above)
+    with pytest.raises(InputShapeError, match="expected at least one"):
+        range_images_tensor([], preset=PRESETS["nuscenes_lidar_top"])
+
+
+def test_frames_decoded_together_equal_each_frame_decoded_alone_and_keep_their_own_failures(keyframes):
+    images, _ = keyframes[0]
+    other, _ = keyframes[1]
+    broken = [None, *other[1:3], other[3][:300], *other[4:]]  # camera 0 missing, camera 3 truncated
+    cams = CameraPreprocessor(size=(64, 192), decoder="turbo")
+    together, failed = cams.many([images, broken])
+    assert together.shape == (2, 6, 3, 64, 192)
+    assert failed[0] == {} and sorted(failed[1]) == [3] and "truncated" in failed[1][3]
+    for b, frame in enumerate((images, broken)):
+        alone, _ = cams(frame)
+        torch.testing.assert_close(together[b], alone, atol=0, rtol=0)
+    with pytest.raises(InputShapeError, match=r"\[5, 6\] camera slots"):
+        cams.many([images, images[:5]])
+
+
+def test_the_describer_prepares_several_frames_as_it_prepares_each(keyframes, bundled):
+    batch = bundled.prepare_many(keyframes)
+    assert batch.images.shape == (2, 6, 3, 64, 192) and batch.ranges.shape[:2] == (2, 1)
+    assert batch.failed == [{}, {}]
+    for b, (images, points) in enumerate(keyframes):
+        alone = bundled.prepare(images, points)
+        torch.testing.assert_close(batch.images[b:b + 1], alone.images, atol=0, rtol=0)
+        torch.testing.assert_close(batch.ranges[b:b + 1], alone.ranges, atol=0, rtol=0)
 
 
 def test_tf32_is_refused_on_the_cpu_naming_what_runs_there():

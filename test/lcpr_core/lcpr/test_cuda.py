@@ -71,6 +71,42 @@ def test_exact_fp32_on_the_gpu_reproduces_the_reference_vectors_to_1e_5_eager_an
     np.testing.assert_allclose(replayed, expected["descriptor"], atol=1e-5, rtol=0)
 
 
+def test_a_graph_reserved_for_a_larger_batch_pads_smaller_batches_and_keeps_the_reference_vectors_to_1e_5(
+        shared, detweights) -> None:
+    expected = np.load(shared / "reference" / "lcpr" / "expected_seed0.npz")["descriptor"]
+    keys = json.loads((shared / "reference" / "lcpr" / "keys.json").read_text())
+    model = LCPR().eval()
+    model.load_state_dict(detweights.det_state_dict(keys, 0))
+    describer = Describer(ModelConfig(precision="fp32", device="cuda"), model=model.cuda())
+    describer.reserve(4)
+    assert isinstance(describer.backend, GraphBackend) and describer.backend.batches == (1, 4)
+    images, ranges = detweights.det_camera_input(2, 0), detweights.det_range_input(2, 0)
+    padded = describer.backend(images, ranges)  # 2 rows replayed in the graph of 4
+    np.testing.assert_allclose(padded, expected, atol=1e-5, rtol=0)
+    eager = describer.backend(images.repeat(3, 1, 1, 1, 1), ranges.repeat(3, 1, 1, 1))  # 6 rows: eager
+    np.testing.assert_allclose(eager, np.concatenate([expected] * 3), atol=1e-5, rtol=0)
+
+
+def test_frames_prepared_together_on_the_gpu_equal_each_frame_prepared_alone(shared: Path) -> None:
+    pytest.importorskip("torchvision.io", reason="torchvision (nvJPEG) not importable here")
+    gpu = Describer(ModelConfig(device="cuda", decode="nvjpeg", precision="fp32", **NARROW))
+    frames = [find_nuscenes_keyframe(shared / "data" / name).read() for name in ("nuscenes_sample", "nuscenes_sample2")]
+    broken = list(frames[1][0])
+    broken[3] = broken[3][: len(broken[3]) // 2]  # truncated: only this frame's camera 3 is left out
+    frames.append((broken, frames[1][1]))
+    batch = gpu.prepare_many(frames)
+    assert batch.images.is_cuda and batch.images.shape[:2] == (3, 6)
+    assert batch.failed[0] == {} and batch.failed[1] == {} and set(batch.failed[2]) == {3}
+    for b, (images, points) in enumerate(frames):
+        alone = gpu.prepare(images, points)
+        # nvJPEG may decode a batch on another backend than a frame's six: a grey level here and there
+        assert float((batch.images[b:b + 1] - alone.images).abs().mean()) <= 0.01
+        assert torch.equal(batch.ranges[b:b + 1], alone.ranges)
+    many = gpu.describe_tensors(batch.images, batch.ranges)
+    one = np.concatenate([gpu.describe_tensors(p.images, p.ranges) for p in (gpu.prepare(*f) for f in frames)])
+    assert float((many * one).sum(axis=1).min()) >= 0.9999
+
+
 def test_a_failed_graph_capture_leaves_the_eager_path_with_a_warning(monkeypatch, caplog) -> None:
     def broken(*_: object, **__: object) -> Any:
         raise RuntimeError("capture refused")

@@ -9,7 +9,7 @@ import torch
 
 from lcpr_core.descriptor_map import DescriptorMap
 from lcpr_core.errors import MapSchemaError
-from lcpr_core.lcpr.describer import Describer, Prepared
+from lcpr_core.lcpr.describer import Describer, Prepared, prepare_each
 from lcpr_core.lcpr.detector import DetectorConfig, Frame, KeyframeConfig, LoopDetector, MatchConfig, SensorConfig
 from lcpr_core.verification import VerifierConfig
 
@@ -26,6 +26,9 @@ class PlaceDescriber:
 
     def prepare(self, images, points):
         return Prepared(*self.inputs(images, points))
+
+    def prepare_many(self, frames):
+        return prepare_each(self.prepare, frames)
 
     def describe_tensors(self, images, ranges):
         rows = []
@@ -205,6 +208,23 @@ def test_frames_processed_in_batches_give_the_results_of_one_frame_at_a_time():
     assert [[(c.match_id, c.distance) for c in r.candidates] for r in one] == \
         [[(c.match_id, c.distance) for c in r.candidates] for r in many]
     assert sum(r.loop is not None for r in many) == 10
+
+
+def test_a_batch_described_while_the_one_before_is_stored_gives_the_results_of_one_frame_at_a_time():
+    frames = [frame(float(t), float(t)) for t in range(60)] + [frame(100.0 + t, float(t)) for t in range(10)]
+    single, pipelined = detector(), detector()
+    one = [single.process(f) for f in frames]
+    batches = [frames[i:i + 8] for i in range(0, len(frames), 8)]
+    described = pipelined.describe_batch(batches[0])
+    many = []
+    for nxt in batches[1:]:
+        ahead = pipelined.describe_batch(nxt)  # described before the batch in front of it is stored
+        many += pipelined.store_batch(described)
+        described = ahead
+    many += pipelined.store_batch(described)
+    assert [(r.reason, r.keyframe_id) for r in one] == [(r.reason, r.keyframe_id) for r in many]
+    assert [[(c.match_id, c.distance) for c in r.candidates] for r in one] == \
+        [[(c.match_id, c.distance) for c in r.candidates] for r in many]
 
 
 def test_a_prefetched_iterator_keeps_the_order_raises_the_source_error_and_stops_early():

@@ -9,7 +9,7 @@ import torch
 
 from lcpr_core.descriptor_map import DescriptorMap
 from lcpr_core.errors import InvalidValueError, MapError
-from lcpr_core.lcpr.describer import Describer, Prepared
+from lcpr_core.lcpr.describer import Describer, Prepared, PreparedBatch, prepare_each
 from lcpr_core.lcpr.detector import MATCH_METHODS, DetectorConfig, Frame, LoopDetector, MatchConfig
 from lcpr_core.scan_context import ScanContextConfig, ScanContextRows, scan_context
 from lcpr_core.verification import VerifierConfig
@@ -27,6 +27,9 @@ class NoPlaceDescriber:
 
     def prepare(self, images: object, points: np.ndarray) -> Prepared:
         return Prepared(torch.zeros(1), torch.zeros(1))
+
+    def prepare_many(self, frames: list[tuple[object, np.ndarray]]) -> PreparedBatch:
+        return prepare_each(self.prepare, frames)  # type: ignore[arg-type]
 
     def describe_tensors(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:
         v = self.rng.normal(size=(len(ranges), 256)).astype(np.float32)
