@@ -120,7 +120,7 @@ class EvalOptions:
     pose_graph: bool = True  # run the pose-graph proof with the verified loops (needs gtsam)
     # frames whose keyframes are described in one network call (matched in order, as online); AUTO_BATCH: 1 on
     # the CPU, CUDA_BATCH on a GPU
-    batch: int = 0
+    batch: int = AUTO_BATCH
     lidar_only: bool = False  # no cameras read: every frame described with all camera slots empty
     odometry: str = "bag"  # the detector's poses: the bag's odometry, or "kiss-icp" on its clouds (then the back end)
 
@@ -289,9 +289,8 @@ def evaluate_bag(
     opts = options if options is not None else EvalOptions()
     start = time.perf_counter()
     batch = frames_per_call(opts)
-    reading: dict[str, Any] = dict(topics=opts.topics, slop=opts.slop, decode_compressed=False,
-                                   min_cameras=0 if opts.lidar_only else 1)
-    stream = read_frames(bag, **reading)
+    stream = read_frames(bag, topics=opts.topics, slop=opts.slop, decode_compressed=False,
+                         min_cameras=0 if opts.lidar_only else 1)
     frames: Prefetched[SensorFrame] | None = None
     total = len(stream) if not opts.limit else min(opts.limit, len(stream))
     bar = progress_bar(total, desc="lcpr_eval", unit="frame", enabled=progress)
@@ -424,9 +423,8 @@ class _Pipeline:
         described = self._worker.submit(record.detector.describe_batch, det_frames)
         if self.overlap:
             self.finish()  # the batch before, stored while this one is described
-            self._waiting = (frames, det_frames, described)
-        else:
-            self._waiting = (frames, det_frames, described)
+        self._waiting = (frames, det_frames, described)
+        if not self.overlap:
             self.finish()
 
     def finish(self) -> None:

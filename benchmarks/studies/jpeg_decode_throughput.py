@@ -48,13 +48,12 @@ def main(argv: list[str] | None = None) -> int:
              for image in find_nuscenes_keyframe(shared / "data" / name).read()[0]]
     images = (jpegs * (6 * args.frames // len(jpegs) + 1))[:6 * args.frames]
     count = len(images)
-    rows: list[tuple[str, float]] = []
 
     def report(name: str, ms: float) -> None:
-        rows.append((name, ms))
         print(f"{name}: {ms:.1f} ms for {count} images = {count / ms * 1e3:.0f} images/s", flush=True)
 
     cpus = os.cpu_count() or 1
+
     def cpu_decode(image: bytes) -> object:
         return rgb_array(image, (256, 704))
 
