@@ -104,7 +104,7 @@ __all__ = [
 ]
 
 GRAPH_SCHEMA = "lcpr_backend_graph"
-GRAPH_VERSION = 1
+GRAPH_VERSION = 2  # 2 added the measured ups; version 1 files (none) still load
 _LINEAR_M, _LINEAR_RAD = 0.02, math.radians(0.1)  # a loop that moved its node less was solved in one update
 _CONVERGED_M, _CONVERGED_RAD = 1e-3, math.radians(0.01)  # an extra iSAM2 update that moves less: stop
 _PATH_LENGTH_M = 10.0  # a radian of relative-pose uncertainty weighs as much as 10 m when choosing the path
@@ -121,6 +121,7 @@ LOOP_UNKNOWN = "loop stamp never seen"
 LOOP_OLD = "loop stamp older than the graph"
 LOOP_AHEAD = "loop stamp ahead of odometry"
 LOOP_SAME_NODE = "loop within one node"
+UP_VECTOR = "up bad vector"
 
 
 def _default_sigmas() -> tuple[float, ...]:
@@ -263,6 +264,11 @@ class BackendConfig:
     factorization: str = "auto"
     level_sigma_deg: float = 0.0  # > 0: every node's up axis is pulled to the world's up with this std dev; 0 = off
     gravity_sigma_deg: float = 0.0  # > 0: every node's tilt is held to the odometry's with this std dev; 0 = off
+    # std dev (deg) of an up direction measured from a scan's walls (add_up), inside a Huber kernel; 0 = ignore them
+    up_sigma_deg: float = 2.0
+    # m of travel from the first node: the ups measured within it, carried by the odometry, are averaged into the
+    # world's up (fixed at the first measurement beyond it); short, so that the odometry's drift stays out of it
+    up_warmup_m: float = 10.0
 
     def __post_init__(self) -> None:
         try:
@@ -280,6 +286,8 @@ class BackendConfig:
                      f"BackendConfig.{name}={value!r}; expected a finite number > 0")
         _finite_non_negative(self, "level_sigma_deg")
         _finite_non_negative(self, "gravity_sigma_deg")
+        _finite_non_negative(self, "up_sigma_deg")
+        _finite_non_negative(self, "up_warmup_m")
         _finite_non_negative(self, "wildfire_threshold")
         _require(self.factorization in FACTORIZATIONS,
                  f"BackendConfig.factorization={self.factorization!r}; expected one of {', '.join(FACTORIZATIONS)}")
@@ -297,6 +305,7 @@ class BackendStats:
     last_loop_s: float | None  # seconds the last accepted loop took (check + iSAM2 updates)
     last_chi2: float | None  # the consistency statistic of the last loop checked
     loops_redundant: int = 0  # skipped: both ends within loops.min_spacing_m of an accepted loop's
+    ups: int = 0  # measured up directions taken (add_up), the warm-up's included
 
 
 # ============================================================================ the back end
@@ -341,6 +350,8 @@ class PoseGraphBackend:
         self._estimates: np.ndarray | None = None  # (K, 4, 4) cache, None when stale
         self._qr = config.factorization == "qr"
         self._isam = self._new_isam()
+        self._up_world: np.ndarray | None = None  # the world's up in the odometry frame, once warmed up
+        self._ups: list[tuple[float, int, np.ndarray]] = []  # (stamp, node, up in that node's base frame)
 
     # -- inputs ------------------------------------------------------------------------------
     def add_odometry(self, stamp: float, world_T_base: np.ndarray) -> bool:
@@ -420,6 +431,44 @@ class PoseGraphBackend:
         self._last_loop_s = time.perf_counter() - tic
         return True
 
+    def add_up(self, stamp: float, up: np.ndarray) -> bool:
+        """Take the up direction measured in the loops' LiDAR frame at ``stamp`` (:func:`lcpr_core.up.estimate_up`).
+
+        The node nearest in time gets an attitude factor holding its up axis to the world's up (std dev
+        ``up_sigma_deg``, Huber kernel). The world's up in the odometry frame is the mean of the measurements
+        within ``up_warmup_m`` of travel from the first node, carried by the odometry, so an odometry frame
+        that is not level (a handheld start, a LIO's first IMU frame) is fine. False when ``up_sigma_deg``
+        is 0 (ignored). Raises BackendError (the graph unchanged) for a vector that is not finite and
+        non-zero or a stamp outside the odometry.
+        """
+        t = self._stamp(stamp, "up stamp")
+        vec = np.asarray(up, np.float64) if isinstance(up, (np.ndarray, list, tuple)) else np.full(3, np.nan)
+        norm = float(np.linalg.norm(vec)) if vec.shape == (3,) and np.isfinite(vec).all() else 0.0
+        if norm < 1e-9:
+            self._refuse(UP_VECTOR, f"up at stamp {t!r} is {_show(up)}; expected a finite non-zero 3-vector")
+        if self.config.up_sigma_deg <= 0:
+            return False
+        node, odom_t = self._attach(t, "up stamp", tolerance=math.inf)  # a tilt carried a few s drifts little
+        body_t = self.config.base_T_lidar[:3, :3] @ (vec / norm)  # base frame at t
+        body = self._node_odom(node)[:3, :3].T @ odom_t[:3, :3] @ body_t  # the node's base frame
+        self._ups.append((t, node, body))
+        if self._up_world is None:
+            warmup = self.config.up_warmup_m
+            if self._travel[node] <= warmup:
+                return True  # kept for the world's up; its factor comes when the warm-up ends
+            warm = [(n, b) for _, n, b in self._ups if self._travel[n] <= warmup] or [(node, body)]
+            world = sum(self._node_odom(n)[:3, :3] @ b for n, b in warm)
+            self._up_world = world / np.linalg.norm(world)
+            taken = self._ups
+        else:
+            taken = self._ups[-1:]
+        graph = self._gtsam.NonlinearFactorGraph()
+        for _, n, b in taken:
+            self._add_up_factor(graph, n, b, self._up_world)
+        self._update(graph, self._gtsam.Values())
+        self._refresh()
+        return True
+
     # -- outputs ---------------------------------------------------------------------------
     def pose(self, stamp: float) -> np.ndarray:
         """Corrected 4 x 4 world_T_base at ``stamp`` (within the odometry's span; see the module docstring)."""
@@ -452,7 +501,7 @@ class PoseGraphBackend:
         return BackendStats(odometry=len(self._stamps), nodes=len(self._node_index),
                             loops_accepted=len(self._loops), loops_rejected=self._rejected,
                             refused=dict(self._refused), last_loop_s=self._last_loop_s, last_chi2=self._last_chi2,
-                            loops_redundant=self._redundant)
+                            loops_redundant=self._redundant, ups=len(self._ups))
 
     @property
     def loops(self) -> list[tuple[float, float, float]]:
@@ -475,6 +524,10 @@ class PoseGraphBackend:
             "loop_covariance": np.array([lp.covariance for lp in self._loops], np.float64).reshape(-1, 6, 6),
             "loop_stamps": np.array([lp.stamps for lp in self._loops], np.float64).reshape(-1, 2),
             "loop_chi2": np.array([lp.chi2 for lp in self._loops], np.float64),
+            "up_stamps": np.array([u[0] for u in self._ups], np.float64),
+            "up_nodes": np.array([u[1] for u in self._ups], np.int64),
+            "up_body": np.array([u[2] for u in self._ups], np.float64).reshape(-1, 3),
+            "up_world": np.full(3, np.nan) if self._up_world is None else self._up_world,
             "counters": np.array(json.dumps(counters)),
         }
         with atomic_path(path) as tmp:
@@ -594,6 +647,13 @@ class PoseGraphBackend:
                 noise = gt.noiseModel.Isotropic.Sigma(2, math.radians(sigma_deg))
                 graph.add(gt.AttitudeFactorPose3(node, gt.Unit3(up), noise, gt.Unit3(body_up)))
 
+    def _add_up_factor(self, graph: Any, node: int, body_up: np.ndarray, world_up: np.ndarray) -> None:
+        """The measured up of ``node`` (its base frame) held to the world's up: add_up."""
+        gt = self._gtsam
+        noise = gt.noiseModel.Robust.Create(gt.noiseModel.mEstimator.Huber.Create(1.345),
+                                            gt.noiseModel.Isotropic.Sigma(2, math.radians(self.config.up_sigma_deg)))
+        graph.add(gt.AttitudeFactorPose3(node, gt.Unit3(world_up), noise, gt.Unit3(body_up)))
+
     def _loop_noise(self, gtsam_cov: np.ndarray) -> Any:
         gt = self._gtsam
         noise = gt.noiseModel.Gaussian.Covariance(gtsam_cov)
@@ -708,8 +768,10 @@ class PoseGraphBackend:
         pose[:3, :3] = nearest_rotation(pose[:3, :3])
         return pose
 
-    def _attach(self, t: float, name: str) -> tuple[int, np.ndarray]:
-        """(graph node nearest to stamp ``t``, the odometry pose at ``t``) or a refusal naming the stamp."""
+    def _attach(self, t: float, name: str, *, tolerance: float | None = None) -> tuple[int, np.ndarray]:
+        """(graph node nearest to stamp ``t``, the odometry pose at ``t``) or a refusal naming the stamp.
+
+        ``tolerance``: s the node may be from ``t`` (default ``loops.attach_tolerance``)."""
         if not self._node_index:
             self._refuse(LOOP_UNKNOWN, f"{name}={t!r}: the graph holds no odometry yet")
         odom = self._odom_at(t, name)
@@ -717,7 +779,7 @@ class PoseGraphBackend:
         near = [j for j in (i - 1, i) if 0 <= j < len(self._node_stamps)]
         node = min(near, key=lambda j: abs(self._node_stamps[j] - t))
         gap = abs(self._node_stamps[node] - t)
-        if gap > self.config.loops.attach_tolerance:
+        if gap > (self.config.loops.attach_tolerance if tolerance is None else tolerance):
             self._refuse(LOOP_UNKNOWN, f"{name}={t!r} is {gap:.3f} s from the nearest graph node (stamp "
                                        f"{self._node_stamps[node]!r}); loops.attach_tolerance = "
                                        f"{self.config.loops.attach_tolerance} s")
@@ -773,18 +835,22 @@ class PoseGraphBackend:
         if schema != GRAPH_SCHEMA:
             raise bad(f"schema {schema!r}; expected {GRAPH_SCHEMA!r} (a file written by PoseGraphBackend.save)")
         version = int(data["version"]) if "version" in data else None
-        if version != GRAPH_VERSION:
-            raise bad(f"version {version!r}; this back end reads version {GRAPH_VERSION}")
+        if version not in (1, GRAPH_VERSION):
+            raise bad(f"version {version!r}; this back end reads versions 1 to {GRAPH_VERSION}")
+        if version == 1:  # before measured ups
+            data = {**data, "up_stamps": np.zeros(0), "up_nodes": np.zeros(0, np.int64), "up_body": np.zeros((0, 3)),
+                    "up_world": np.full(3, np.nan)}
         shapes = {"base_T_lidar": (4, 4), "stamps": (None,), "odometry": (None, 4, 4), "node_index": (None,),
                   "node_estimate": (None, 4, 4), "step_covariance": (None, 6, 6), "loop_nodes": (None, 2),
                   "loop_measured": (None, 4, 4), "loop_covariance": (None, 6, 6), "loop_stamps": (None, 2),
-                  "loop_chi2": (None,)}
+                  "loop_chi2": (None,), "up_stamps": (None,), "up_nodes": (None,), "up_body": (None, 3),
+                  "up_world": (3,)}
         for name, shape in shapes.items():
             arr = data.get(name)
             if arr is None or arr.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, arr.shape,
                                                                                                     strict=True)):
                 raise bad(f"{name} of shape {None if arr is None else arr.shape}; expected {shape} (None: any)")
-            if arr.dtype.kind not in "fi" or not np.isfinite(arr).all():
+            if arr.dtype.kind not in "fi" or not (np.isfinite(arr).all() or name == "up_world"):
                 raise bad(f"{name} holds non-numbers or NaN/inf")
         if not np.allclose(data["base_T_lidar"], self.config.base_T_lidar, atol=1e-9):
             raise bad(f"saved with base_T_lidar {_show(data['base_T_lidar'])}, but this back end has "
@@ -796,7 +862,10 @@ class PoseGraphBackend:
                 or (k and (idx[0] != 0 or np.any(np.diff(idx) <= 0) or idx[-1] >= n))
                 or np.any(np.diff(data["stamps"]) <= 0) or (n and not k)
                 or any(len(data[f"loop_{s}"]) != nl for s in ("measured", "covariance", "stamps", "chi2"))
-                or (nl and (data["loop_nodes"].min() < 0 or data["loop_nodes"].max() >= k))):
+                or (nl and (data["loop_nodes"].min() < 0 or data["loop_nodes"].max() >= k))
+                or len(data["up_nodes"]) != len(data["up_stamps"]) or len(data["up_body"]) != len(data["up_stamps"])
+                or (len(data["up_nodes"]) and (data["up_nodes"].min() < 0 or data["up_nodes"].max() >= k))
+                or not (np.isfinite(data["up_world"]).all() or np.isnan(data["up_world"]).all())):
             raise bad(f"inconsistent arrays ({n} odometry stamps, {k} nodes, {nl} loops); the file is damaged")
         try:
             counters = json.loads(str(data["counters"]))
@@ -821,6 +890,13 @@ class PoseGraphBackend:
             self._remember(_Loop(int(parent), int(child), measured.copy(), cov.copy(),
                                  (float(stamps[0]), float(stamps[1])), float(chi2),
                                  _to_world(gtsam_cov, self._node_odom(int(child)))))
+        self._ups = [(float(t), int(n), b.copy()) for t, n, b in zip(data["up_stamps"], data["up_nodes"],
+                                                                       data["up_body"], strict=True)]
+        if np.isfinite(data["up_world"]).all():
+            self._up_world = data["up_world"] / np.linalg.norm(data["up_world"])
+            if self.config.up_sigma_deg > 0:
+                for _, n, b in self._ups:
+                    self._add_up_factor(graph, n, b, self._up_world)
         self._update(graph, values)
         for _ in range(max(self.config.loops.iterations, 1)):
             self._update()
@@ -914,6 +990,7 @@ def config_dict(config: BackendConfig) -> dict[str, Any]:
                relinearize_translation=config.relinearize_translation, wildfire_threshold=config.wildfire_threshold,
                factorization=config.factorization,
                level_sigma_deg=config.level_sigma_deg,
-               gravity_sigma_deg=config.gravity_sigma_deg)
+               gravity_sigma_deg=config.gravity_sigma_deg, up_sigma_deg=config.up_sigma_deg,
+               up_warmup_m=config.up_warmup_m)
     return out
 

@@ -70,8 +70,18 @@ class LoopStream:
     loop_cov: np.ndarray  # (L, 6, 6), NaN where the detector gave none
     base_T_lidar: np.ndarray  # (4, 4)
     seconds: dict[str, float] = field(default_factory=dict)  # time spent per stage while recording
+    # (K, 3) up measured from each keyframe's walls (LiDAR frame), NaN: none; not given = none measured
+    ups: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     def __post_init__(self) -> None:
+        if self.ups.shape == (0, 3):
+            self.ups = np.full((len(self.keyframes), 3), np.nan)
+        if self.ups.shape != (len(self.keyframes), 3):
+            raise InvalidValueError(f"LoopStream ups {self.ups.shape} for {len(self.keyframes)} keyframes; "
+                                    "expected (K, 3)")
+        self._check()
+
+    def _check(self) -> None:
         n = len(self.stamps)
         if self.truth.shape != (n, 4, 4) or self.odometry.shape != (n, 4, 4):
             raise InvalidValueError(f"LoopStream of {n} stamps with truth {self.truth.shape} and odometry "
@@ -98,6 +108,10 @@ class LoopStream:
         """The same stream with no detected loop (what the back end does on odometry alone)."""
         return dataclasses.replace(self, loops=self.loops[:0], loop_T=self.loop_T[:0], loop_cov=self.loop_cov[:0])
 
+    def without_ups(self) -> LoopStream:
+        """The same stream with no measured up (loops alone)."""
+        return dataclasses.replace(self, ups=np.full((len(self.keyframes), 3), np.nan))
+
     def with_loops(self, loops: Iterable[tuple[float, float, np.ndarray, np.ndarray | None]], *,
                    tolerance: float = 1e-3) -> tuple[LoopStream, int]:
         """(this stream with ``loops`` added, how many were left out): each ``(query_stamp, match_stamp,
@@ -123,12 +137,14 @@ class LoopStream:
     def save(self, path: str | os.PathLike[str]) -> None:
         """Write the stream as .npz (atomically, no pickled objects): a cache of a slow recording."""
         with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-            np.savez(fh, **{k: getattr(self, k) for k in _ARRAYS}, seconds=np.array(json.dumps(self.seconds)))
+            np.savez(fh, **{k: getattr(self, k) for k in _ARRAYS}, ups=self.ups,
+                     seconds=np.array(json.dumps(self.seconds)))
 
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> LoopStream:
         with np.load(path, allow_pickle=False) as z:
-            return cls(**{k: z[k] for k in _ARRAYS}, seconds=json.loads(str(z["seconds"])))
+            return cls(**{k: z[k] for k in _ARRAYS}, seconds=json.loads(str(z["seconds"])),
+                       ups=z["ups"] if "ups" in z.files else np.zeros((0, 3)))
 
 
 class StreamRecorder:
@@ -143,6 +159,7 @@ class StreamRecorder:
         self._truth: list[np.ndarray] = []
         self._index: dict[float, int] = {}
         self._keyframes: list[int] = []
+        self._ups: list[np.ndarray] = []
         self._loops: list[tuple[int, int]] = []
         self._loop_T: list[np.ndarray] = []
         self._loop_cov: list[np.ndarray] = []
@@ -163,12 +180,13 @@ class StreamRecorder:
         self._truth.append(np.full((4, 4), np.nan) if truth is None else np.asarray(truth, np.float64).reshape(4, 4))
         return len(self._stamps) - 1
 
-    def add_keyframe(self, stamp: float) -> int:
-        """Mark the recorded frame at ``stamp`` as a detector keyframe; its index."""
+    def add_keyframe(self, stamp: float, *, up: np.ndarray | None = None) -> int:
+        """Mark the recorded frame at ``stamp`` as a detector keyframe (``up``: measured from its walls); its index."""
         index = self._index.get(float(stamp))
         if index is None:
             raise InvalidValueError(f"a keyframe at stamp {stamp!r}, a frame never recorded; add_frame comes first")
         self._keyframes.append(index)
+        self._ups.append(np.full(3, np.nan) if up is None else np.asarray(up, np.float64).reshape(3))
         return index
 
     def add_loop(self, query_stamp: float, match_stamp: float, match_T_query: np.ndarray,
@@ -190,7 +208,7 @@ class StreamRecorder:
         if float(result.stamp) not in self._index:
             raise InvalidValueError(f"a detector result at stamp {result.stamp!r}, a frame never recorded; "
                                     "add_frame comes first")
-        self.add_keyframe(result.stamp)
+        self.add_keyframe(result.stamp, up=result.up)
         for c in result.candidates:
             if c.verified and c.match_T_query is not None:
                 self.add_loop(c.query_stamp, c.match_stamp, c.match_T_query, c.covariance)
@@ -202,7 +220,7 @@ class StreamRecorder:
             odometry=np.array(self._odometry).reshape(-1, 4, 4), keyframes=np.array(self._keyframes, np.int64),
             loops=np.array(self._loops, np.int64).reshape(-1, 2), loop_T=np.array(self._loop_T).reshape(-1, 4, 4),
             loop_cov=np.array(self._loop_cov).reshape(-1, 6, 6), base_T_lidar=self.base_T_lidar.copy(),
-            seconds=dict(seconds or {}))
+            seconds=dict(seconds or {}), ups=np.array(self._ups, np.float64).reshape(-1, 3))
 
 
 # ============================================================================ replay
@@ -218,6 +236,7 @@ class ReplayRun:
     loop_ms: list[float]  # time of each add_loop call
     refused: list[str]  # why each refused loop (BackendError) was refused
     stats: BackendStats
+    up_refused: list[str] = field(default_factory=list)  # why each refused measured up was refused
 
     @property
     def injected_down_weighted(self) -> int:
@@ -264,6 +283,7 @@ def replay(stream: LoopStream, *, inject: int = 0, seed: int = 0, config: Backen
     by_query: dict[int, list[int]] = {}
     for k, (q, _) in enumerate(stream.loops):
         by_query.setdefault(int(q), []).append(k)
+    ups = {int(i): u for i, u in zip(stream.keyframes, stream.ups, strict=True) if np.isfinite(u).all()}
     false_at = false_loops(stream, count=inject, seed=seed + 1, min_distance=false_min_m) if inject else {}
     config = dataclasses.replace(config or BackendConfig(), base_T_lidar=stream.base_T_lidar)
     g = PoseGraphBackend(config)
@@ -271,9 +291,15 @@ def replay(stream: LoopStream, *, inject: int = 0, seed: int = 0, config: Backen
     rejected_false = 0
     taken_false: list[tuple[float, float]] = []
     refused: list[str] = []
+    up_refused: list[str] = []
     loop_ms: list[float] = []
     for i, (t, pose) in enumerate(zip(stream.stamps, stream.odometry, strict=True)):
         g.add_odometry(float(t), pose)
+        if i in ups:
+            try:
+                g.add_up(float(t), ups[i])
+            except BackendError as err:
+                up_refused.append(str(err))
         events = [(True, k) for k in by_query.get(i, [])] + [(False, m) for m in false_at.get(i, [])]
         for e in rng.permutation(len(events)):  # the false loops come in among the true ones
             detected, k = events[int(e)]
@@ -294,7 +320,7 @@ def replay(stream: LoopStream, *, inject: int = 0, seed: int = 0, config: Backen
     _, trajectory = g.trajectory()
     weights = [_false_loop_weight(g, q, m) for q, m in taken_false]
     return ReplayRun(trajectory, accepted, sum(len(v) for v in false_at.values()), rejected_false, weights, loop_ms,
-                     refused, g.stats())
+                     refused, g.stats(), up_refused)
 
 
 def _false_loop_weight(g: PoseGraphBackend, query: float, match: float) -> float:

@@ -46,6 +46,7 @@ class LidarMount:
 class BackendNodeConfig:
     odom_topic: str = "/odom"  # nav_msgs/Odometry of any odometry (world_T_base)
     candidates_topic: str = "/lcpr/candidates"  # the detector's ~/candidates table
+    up_topic: str = "/lcpr/up"  # the detector's ~/up (geometry_msgs/Vector3Stamped); "" = not subscribed
     input_qos: str = "best_available"  # of the odometry subscription (ros_common.qos)
     map_frame: str = "map"
     odom_frame: str = ""  # "" = the odometry messages' header.frame_id
@@ -55,6 +56,8 @@ class BackendNodeConfig:
     pending_s: float = 5.0  # s of header time a loop waits for the odometry of its stamps
     level_sigma_deg: float = 0.0  # > 0: each node's up axis pulled to the world's up (ground vehicles); 0 = off
     gravity_sigma_deg: float = 0.0  # > 0: each node's tilt held to the odometry's (LIO: it measures gravity); 0 = off
+    up_sigma_deg: float = BackendConfig().up_sigma_deg  # std dev of a measured up (up_topic); 0 = ignored
+    up_warmup_m: float = BackendConfig().up_warmup_m  # m of travel whose measured ups set the world's up
     graph: MapFileConfig = field(default_factory=MapFileConfig)
     diagnostics: DiagnosticsConfig = field(default_factory=DiagnosticsConfig)
     keyframes: KeyframeRule = field(default_factory=KeyframeRule)
@@ -69,14 +72,15 @@ class BackendNodeConfig:
         require(math.isfinite(self.path_period) and self.path_period > 0,
                 f"path_period={self.path_period}; it must be > 0 s")
         require(math.isfinite(self.pending_s) and self.pending_s >= 0, f"pending_s={self.pending_s}; it must be >= 0")
-        for name in ("level_sigma_deg", "gravity_sigma_deg"):
+        for name in ("level_sigma_deg", "gravity_sigma_deg", "up_sigma_deg", "up_warmup_m"):
             value = getattr(self, name)
             require(math.isfinite(value) and value >= 0, f"{name}={value}; it must be >= 0 (0 = off)")
 
     def backend(self) -> BackendConfig:
         return BackendConfig(base_T_lidar=self.lidar.matrix(), keyframes=self.keyframes, odometry=self.odometry,
                              loops=self.loops, level_sigma_deg=self.level_sigma_deg,
-                             gravity_sigma_deg=self.gravity_sigma_deg)
+                             gravity_sigma_deg=self.gravity_sigma_deg, up_sigma_deg=self.up_sigma_deg,
+                             up_warmup_m=self.up_warmup_m)
 
 
 DOCS: dict[str, ParamDoc] = {
@@ -84,6 +88,8 @@ DOCS: dict[str, ParamDoc] = {
     "odom_topic": ParamDoc("nav_msgs/Odometry of any odometry (KISS-ICP, LIO, wheels): world_T_base, in stamp order"),
     "candidates_topic": ParamDoc("the detector's ~/candidates (std_msgs/Float64MultiArray); rows with verified = 1 "
                                  "become loops"),
+    "up_topic": ParamDoc("the detector's ~/up (geometry_msgs/Vector3Stamped: each keyframe's up measured from its "
+                         "walls, in the LiDAR frame); empty = not subscribed"),
     "input_qos": ParamDoc("QoS of the odometry subscription: best_available, sensor_data (best effort) or reliable",
                           choices=INPUT_QOS),
     "map_frame": ParamDoc("frame of the corrected poses (~/odometry, ~/path) and parent of map -> odom"),
@@ -100,6 +106,10 @@ DOCS: dict[str, ParamDoc] = {
     "gravity_sigma_deg": ParamDoc("deg: std dev holding every graph node's roll and pitch to the odometry's, for an "
                                   "odometry that measures gravity (FAST-LIO2, LIO-SAM, Point-LIO: 0.5); 0 = off "
                                   "(KISS-ICP and other LiDAR-only odometry drift in tilt)", 0.0, 90.0),
+    "up_sigma_deg": ParamDoc("deg: std dev of a keyframe's up measured from its walls (up_topic; Huber kernel): "
+                             "holds the roll and pitch loops cannot see, on slopes too; 0 = ignored", 0.0, 90.0),
+    "up_warmup_m": ParamDoc("m of travel from the first node whose measured ups, averaged, set the world's up",
+                            0.0, 1e6),
     "graph.path": ParamDoc("graph file (.npz): loaded at start when it exists (the graph continues), saved by "
                            "~/save_graph and at shutdown; empty = in memory only"),
     "graph.save_on_shutdown": ParamDoc("save the graph to graph.path when the node stops (Ctrl-C, SIGTERM)"),

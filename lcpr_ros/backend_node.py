@@ -1,8 +1,9 @@
 """``lcpr_backend``: any odometry + the detector's verified loops in, a corrected trajectory out.
 
-Subscribes nav_msgs/Odometry (``odom_topic``) and the detector's ``~/candidates``
+Subscribes nav_msgs/Odometry (``odom_topic``), the detector's ``~/candidates``
 (``candidates_topic``; rows with verified = 1, read by the column names of
-:mod:`lcpr_ros.outputs`) and feeds :class:`lcpr_core.backend.PoseGraphBackend` (GTSAM iSAM2).
+:mod:`lcpr_ros.outputs`) and its ``~/up`` (``up_topic``: each keyframe's up from its walls) and
+feeds :class:`lcpr_core.backend.PoseGraphBackend` (GTSAM iSAM2).
 Publishes ``~/odometry`` (every odometry message, corrected: ``map_T_odom @ odom_T_base``),
 ``~/path`` (the graph's keyframe poses), map -> odom on /tf (geometry_msgs/TransformStamped on
 ``~/map_to_odom`` where tf2_msgs is not installed) and /diagnostics; service ``~/save_graph``.
@@ -10,7 +11,8 @@ Publishes ``~/odometry`` (every odometry message, corrected: ``map_T_odom @ odom
 Threads: the callbacks only check messages, publish the corrected odometry with the newest
 correction and queue the work; one worker thread applies odometry and loops to the graph in
 arrival order (an optimisation never holds the callbacks up). A loop that arrives before the
-odometry of its stamps waits (``pending_s`` of header time) and is retried as odometry comes in.
+odometry of its stamps (or an up before its odometry) waits (``pending_s`` of header time)
+and is retried as odometry comes in.
 """
 from __future__ import annotations
 
@@ -26,7 +28,7 @@ from typing import Any
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import PoseStamped, TransformStamped
+from geometry_msgs.msg import PoseStamped, TransformStamped, Vector3Stamped
 from nav_msgs.msg import Odometry
 from nav_msgs.msg import Path as PathMsg
 from rclpy.node import Node
@@ -64,12 +66,19 @@ FAILED = "worker: item failed"
 CANDIDATES_BAD = "candidates: bad table"
 CANDIDATES_NO_POSE = "candidates: verified row without a pose"
 LOOP_EXPIRED = "loop: its odometry never came"
+UP_EXPIRED = "up: its odometry never came"
 
 
 @dataclass(frozen=True)
 class _Odom:
     stamp: float
     pose: np.ndarray  # odom_T_base
+
+
+@dataclass(frozen=True)
+class _Up:
+    stamp: float
+    up: np.ndarray  # (3,) in the LiDAR frame
 
 
 @dataclass(frozen=True)
@@ -107,7 +116,7 @@ class BackendNode(NodeStats, Node):
         self._map_T_odom = self.backend.map_T_odom()
         self._frames = (cfg.odom_frame, cfg.base_frame)  # filled from the first odometry message when empty
         self._order = StampOrder()
-        self._pending: list[_Loop] = []
+        self._pending: list[_Loop | _Up] = []
         self._newest_odom = -np.inf
         self._path_sent = 0.0
         self._path_nodes = -1
@@ -124,14 +133,17 @@ class BackendNode(NodeStats, Node):
         self._odom_sub = SensorSubscription(self, Odometry, cfg.odom_topic, self._on_odom, cfg.input_qos,
                                             warn=lambda text: self.warnings(QOS_ADAPTED, text))
         self.create_subscription(Float64MultiArray, cfg.candidates_topic, self._on_candidates, CANDIDATE_QOS)
+        if cfg.up_topic:
+            self.create_subscription(Vector3Stamped, cfg.up_topic, self._on_up, CANDIDATE_QOS)
         self.create_service(Trigger, "~/save_graph", self._on_save_graph)
         self.create_timer(cfg.diagnostics.period, self._publish_diagnostics)
 
-        self.worker: Worker[_Odom | _Loop] = Worker(self._process, max_waiting=MAX_WAITING, name="backend-worker",
+        self.worker: Worker[_Odom | _Loop | _Up] = Worker(self._process, max_waiting=MAX_WAITING, name="backend-worker",
                                                     on_dropped=self._on_dropped, on_error=self._on_failed)
         self.worker.start()
         loaded = f"continuing {cfg.graph.path} ({self._stats.nodes} nodes)" if self._stats.nodes else "a new graph"
-        log.info(f"ready: odometry {cfg.odom_topic}, loops from {cfg.candidates_topic}; {loaded}; "
+        ups = f", ups from {cfg.up_topic}" if cfg.up_topic else ""
+        log.info(f"ready: odometry {cfg.odom_topic}, loops from {cfg.candidates_topic}{ups}; {loaded}; "
                  f"map -> odom on {'/tf' if TFMessage is not None else '~/map_to_odom'}")
 
     # -- inputs (callback thread) -------------------------------------------------------------
@@ -183,13 +195,18 @@ class BackendNode(NodeStats, Node):
                 continue
             self.worker.submit(_Loop(float(row["query_stamp"]), float(row["match_stamp"]), rel, row_covariance(row)))
 
+    def _on_up(self, msg: Vector3Stamped) -> None:
+        self.rates.tick(self.settings.up_topic)
+        v = msg.vector
+        self.worker.submit(_Up(stamp_ns(msg.header) / NS_PER_S, np.array([v.x, v.y, v.z], np.float64)))
+
     # -- worker thread ------------------------------------------------------------------------
-    def _process(self, item: _Odom | _Loop) -> None:
+    def _process(self, item: _Odom | _Loop | _Up) -> None:
         with self._lock:
             if isinstance(item, _Odom):
                 self._add_odometry(item)
             else:
-                self._add_loop(item)
+                self._add_stamped(item)
             self._stats = self.backend.stats()
             self._map_T_odom = self.backend.map_T_odom()
         self._maybe_publish_path()
@@ -202,24 +219,32 @@ class BackendNode(NodeStats, Node):
             return
         self._newest_odom = item.stamp
         waiting, self._pending = self._pending, []
-        for loop in waiting:
-            self._add_loop(loop)
+        for stamped in waiting:
+            self._add_stamped(stamped)
 
-    def _add_loop(self, loop: _Loop) -> None:
-        """Add a loop, or keep it until the odometry reaches its stamps (``pending_s`` ahead at most)."""
-        ahead = max(loop.query_stamp, loop.match_stamp) - self._newest_odom
+    def _add_stamped(self, item: _Loop | _Up) -> None:
+        """Add a loop or an up, or keep it until the odometry reaches its stamps (``pending_s`` ahead at most)."""
+        if isinstance(item, _Up):
+            newest, what = item.stamp, f"up {item.stamp!r}"
+        else:
+            newest, what = max(item.query_stamp, item.match_stamp), f"loop {item.query_stamp!r} -> {item.match_stamp!r}"
+        ahead = newest - self._newest_odom
         if ahead > self.settings.loops.stamp_tolerance:
             if ahead <= self.settings.pending_s or self._newest_odom == -np.inf:
                 if len(self._pending) < MAX_WAITING:
-                    self._pending.append(loop)
+                    self._pending.append(item)
                     return
-            self.drops.add(LOOP_EXPIRED)
-            self.warnings(LOOP_EXPIRED, f"loop {loop.query_stamp!r} -> {loop.match_stamp!r} is {ahead:.3f} s ahead "
-                                        f"of the newest odometry (pending_s = {self.settings.pending_s} s)")
+            expired = UP_EXPIRED if isinstance(item, _Up) else LOOP_EXPIRED
+            self.drops.add(expired)
+            self.warnings(expired, f"{what} is {ahead:.3f} s ahead of the newest odometry "
+                                        f"(pending_s = {self.settings.pending_s} s)")
             return
-        tic = time.perf_counter()
         try:
-            accepted = self.backend.add_loop(loop.query_stamp, loop.match_stamp, loop.match_T_query, loop.covariance)
+            if isinstance(item, _Up):
+                self.backend.add_up(item.stamp, item.up)
+                return
+            tic = time.perf_counter()
+            accepted = self.backend.add_loop(item.query_stamp, item.match_stamp, item.match_T_query, item.covariance)
         except BackendError as err:
             self._refused(err)
             return
@@ -254,11 +279,11 @@ class BackendNode(NodeStats, Node):
             msg.poses.append(item)
         self._path_pub.publish(msg)
 
-    def _on_dropped(self, item: _Odom | _Loop) -> None:
+    def _on_dropped(self, item: _Odom | _Loop | _Up) -> None:
         self.drops.add(BUSY)
         self.warnings(BUSY, f"more than {MAX_WAITING} items waited for the graph; the oldest was dropped")
 
-    def _on_failed(self, item: _Odom | _Loop, err: Exception) -> None:
+    def _on_failed(self, item: _Odom | _Loop | _Up, err: Exception) -> None:
         self.drops.add(FAILED)
         self.warnings(f"{FAILED} ({type(err).__name__})", f"{item!r}: {err}; the graph is kept, the node goes on")
 
@@ -302,6 +327,7 @@ class BackendNode(NodeStats, Node):
             "odometry messages": stats.odometry, "graph nodes": stats.nodes,
             "loops accepted": stats.loops_accepted, "loops rejected": stats.loops_rejected,
             "loops skipped as redundant": stats.loops_redundant,
+            "ups taken": stats.ups,
             "loops waiting for odometry": len(self._pending),
             "inputs refused": refused_total,
             **{f"refused {reason}": n for reason, n in sorted(stats.refused.items())},

@@ -17,6 +17,7 @@ from functools import partial
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import Vector3Stamped
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -46,7 +47,7 @@ from .config import NodeConfig
 from .inputs import CLOUD_NAN, IMAGE_DECODE, camera_input, cloud_points, compressed_payload, raw_payload
 from .mapstore import load_prior_map, save_map
 from .markers import LoopMarkers, MarkerSink, NoMarkers
-from .outputs import candidates_msg, loop_closure_msg
+from .outputs import candidates_msg, loop_closure_msg, up_msg
 from .params import RENAMED, Settings, all_leaves, describe_all, settings_from
 from .sync import LATE_IMAGE, TIME_JUMPED, SyncedFrame, Synchroniser
 
@@ -95,6 +96,7 @@ class LcprNode(NodeStats, Node):
 
         self._loop_pub = self.create_publisher(Float64MultiArray, "~/loop_closure", CANDIDATE_QOS)
         self._candidates_pub = self.create_publisher(Float64MultiArray, "~/candidates", CANDIDATE_QOS)
+        self._up_pub = self.create_publisher(Vector3Stamped, "~/up", CANDIDATE_QOS)
         self._diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._diagnostics = DiagnosticsBuilder(self.get_name())
 
@@ -288,6 +290,9 @@ class LcprNode(NodeStats, Node):
                 self.verdicts.add(candidate.verification)
         for error in result.errors:
             self.warnings("verification failed", f"{error}; the candidate counts as unverified, the node goes on")
+        up = up_msg(result, self._frames["lidar"])
+        if up is not None:  # before the candidates: the back end holds the keyframe's up when its loops come
+            self._up_pub.publish(up)
         if result.candidates:
             self._candidates_pub.publish(candidates_msg(result))
             self.markers.publish(result, synced.pose, self.poses.frame_id, max_distance)

@@ -9,6 +9,8 @@ cols, cols) (:mod:`ros_common.tables`). ``tx..qw`` is match_T_query (the query k
 keyframe's LiDAR frame), ``cov_0..cov_35`` its 6 x 6 covariance row-major over
 (x, y, z, roll, pitch, yaw) as in geometry_msgs/PoseWithCovariance; NaN where the
 candidate was not registered.
+``~/up`` (geometry_msgs/Vector3Stamped): a keyframe's up direction measured from its walls
+(:mod:`lcpr_core.up`), a unit vector in the cloud's frame at the keyframe's stamp, for ``lcpr_backend``.
 """
 from __future__ import annotations
 
@@ -16,13 +18,16 @@ import math
 from collections.abc import Mapping
 
 import numpy as np
+from geometry_msgs.msg import Vector3Stamped
 from std_msgs.msg import Float64MultiArray
 
 from lcpr_core.lcpr.detector import Candidate, Result
+from msg_tools.build import build_message
 from msg_tools.geometry import quaternion_to_matrix
 from ros_common.tables import COVARIANCE_COLUMNS, POSE_COLUMNS, parse_candidates, pose_covariance_cells, table_msg
 
-__all__ = ["CANDIDATE_COLUMNS", "candidates_msg", "loop_closure_msg", "parse_candidates", "row_covariance", "row_pose"]
+__all__ = ["CANDIDATE_COLUMNS", "candidates_msg", "loop_closure_msg", "parse_candidates", "row_covariance", "row_pose",
+           "up_msg"]
 
 CANDIDATE_COLUMNS: tuple[str, ...] = (
     "query_stamp", "match_stamp", "query_id", "match_id", "distance", "rank", "degraded",
@@ -41,6 +46,17 @@ def loop_closure_msg(result: Result) -> Float64MultiArray | None:
     if best is None:
         return None
     return Float64MultiArray(data=[float(best.query_stamp), float(best.match_stamp)])
+
+
+def up_msg(result: Result, frame_id: str) -> Vector3Stamped | None:
+    """``~/up``: the keyframe's up direction from its walls (unit vector in the cloud's frame, at its stamp)."""
+    if result.up is None:
+        return None
+    sec, nsec = divmod(round(float(result.stamp) * 1e9), 1_000_000_000)
+    x, y, z = (float(v) for v in result.up)
+    return build_message("geometry_msgs/msg/Vector3Stamped", {
+        "header": {"stamp": {"sec": sec, "nanosec": nsec}, "frame_id": frame_id},
+        "vector": {"x": x, "y": y, "z": z}}, msg_type=Vector3Stamped)
 
 
 def candidates_msg(result: Result) -> Float64MultiArray | None:

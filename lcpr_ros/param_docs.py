@@ -67,6 +67,27 @@ DOCS: dict[str, ParamDoc] = {
     "submap.lidar_rpy": ParamDoc("rad: roll, pitch, yaw of the LiDAR in the odometry's child frame (R = Rz Ry Rx)",
                                  dynamic=True),
 
+    # ---- each keyframe's up from its walls (lcpr_core.up), published on ~/up for lcpr_backend
+    "up.enabled": ParamDoc("measure each keyframe's up direction from the walls its cloud sees and publish it on "
+                           "~/up (lcpr_backend holds the map's roll and pitch with it)", dynamic=True),
+    "up.voxel": ParamDoc("m, voxel grid of the cloud before its normals are estimated; 0 = none", 0.0, 5.0,
+                         dynamic=True),
+    "up.neighbours": ParamDoc("points per normal", 3, 200, dynamic=True),
+    "up.planarity": ParamDoc("a point lies on a plane when its smallest covariance eigenvalue is under this share "
+                             "of the middle one", 0.0, 1.0, dynamic=True),
+    "up.min_range": ParamDoc("m, closer points (the vehicle, the person carrying the sensor) are ignored", 0.0, 1000.0,
+                             dynamic=True),
+    "up.max_range": ParamDoc("m, farther points are ignored", 0.0, 1000.0, dynamic=True),
+    "up.max_tilt_deg": ParamDoc("deg: a plane whose normal is within this of the LiDAR's horizontal plane counts as "
+                                "a wall", 0.0, 90.0, dynamic=True),
+    "up.inlier_deg": ParamDoc("deg: walls further from vertical than this (roofs, slopes) are dropped while the "
+                              "up is refined", 0.0, 90.0, dynamic=True),
+    "up.iterations": ParamDoc("refinement passes", 1, 100, dynamic=True),
+    "up.min_walls": ParamDoc("wall points needed for an up (fewer: none published)", 1, 1_000_000, dynamic=True),
+    "up.min_spread": ParamDoc("the second wall direction's share of the first (eigenvalue ratio) needed; walls "
+                              "facing one way leave a tilt unseen", 0.0, 1.0, dynamic=True),
+    "up.min_fov_deg": ParamDoc("deg of azimuth a keyframe's cloud must cover for an up (a narrow field of view sees "
+                               "the walls of one side only); 0 = any", 0.0, 360.0, dynamic=True),
     # ---- model (read-only: the network is built once)
     "model.weights": ParamDoc("LCPR weights: bundled (the trained weights shipped, synthetic cities), a checkpoint "
                               "file (the authors' released one for a real vehicle), or seeded (random, testing only)"),

@@ -33,6 +33,7 @@ A loop the back end refuses (BackendError: a stamp it cannot attach) is counted,
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -78,6 +79,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=1, help="KISS-ICP and torch threads")
     p.add_argument("--level-sigma", type=float, default=0.0,
                    help="deg: the back end's level prior (BackendConfig.level_sigma_deg; 0 = off, loops only)")
+    p.add_argument("--up-sigma", type=float, default=None,
+                   help="deg: std dev of the up measured from each keyframe's walls (BackendConfig.up_sigma_deg; "
+                        "default: the back end's; 0 = off)")
     p.add_argument("--out", type=Path, default=Path("out/backend_ate"))
     args = p.parse_args(argv)
 
@@ -105,7 +109,12 @@ def main(argv: list[str] | None = None) -> int:
 
     before = trajectory_error(stream.odometry, stream.truth)
     config = BackendConfig(level_sigma_deg=args.level_sigma)
-    level = f"loops and a level prior of {args.level_sigma:g} deg" if args.level_sigma else "loops only"
+    if args.up_sigma is not None:
+        config = dataclasses.replace(config, up_sigma_deg=args.up_sigma)
+    measured = int(np.isfinite(stream.ups).all(axis=1).sum()) if config.up_sigma_deg > 0 else 0
+    priors = ([f"the walls' up at {measured} keyframes ({config.up_sigma_deg:g} deg)"] if measured else []) + (
+        [f"a level prior of {args.level_sigma:g} deg"] if args.level_sigma else [])
+    level = "loops and " + " and ".join(priors) if priors else "loops only"
     print(f"back end: {level}")
     clean = replay(stream, inject=0, seed=args.inject_seed, config=config)
     after = trajectory_error(clean.trajectory, stream.truth)
@@ -121,16 +130,17 @@ def main(argv: list[str] | None = None) -> int:
                                   "ate_odometry": before.rmse, "ate_backend": after.rmse,
                                   "odometry_error": before.to_dict(), "backend_error": after.to_dict(),
                                   "loops": len(stream.loops), "accepted": int(clean.accepted.sum())}
-    tag = f"seed{args.seed}" + (f"_level{args.level_sigma:g}" if args.level_sigma else "")
+    tag = (f"seed{args.seed}" + (f"_level{args.level_sigma:g}" if args.level_sigma else "")
+           + ("" if measured else "_noup"))
     png = args.out / f"backend_ate_{tag}.png"
     plot_trajectories(stream.truth, stream.odometry, clean.trajectory, png, loops=loop_pairs(stream, clean),
                       title=f"KISS-ICP + lcpr_backend ({level}), city seed {args.seed}")
     print(f"plot: {png}")
-    if args.level_sigma:  # what the prior does without a single loop
+    if priors:  # what the priors do without a single loop
         alone = trajectory_error(replay(stream.without_loops(), config=config).trajectory, stream.truth)
-        print(f"the level prior alone (no loops): ATE {alone.text()}; the loops take it to "
-              f"{after.rmse / alone.rmse:.0%} of that")
-        summary.update(ate_level_prior_alone=alone.rmse)
+        print(f"{' and '.join(priors)} alone (no loops): ATE {alone.text()} ({alone.rmse / before.rmse:.0%} of "
+              f"before); the loops take it to {after.rmse / alone.rmse:.0%} of that")
+        summary.update(ate_priors_alone=alone.rmse)
     if args.inject:
         dirty = replay(stream, inject=args.inject, seed=args.inject_seed, config=config)
         ate = trajectory_error(dirty.trajectory, stream.truth).rmse

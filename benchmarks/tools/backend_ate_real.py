@@ -32,6 +32,7 @@ relative pose is more than 0.3 m or 2 deg off the reference's is counted as wron
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -116,6 +117,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--gravity-sigma", type=float, default=0.0,
                    help="deg: the back end's gravity prior (BackendConfig.gravity_sigma_deg; 0 = off, the default; "
                         "0.5 is the documented setting for a LIO such as FAST-LIO2)")
+    p.add_argument("--up-sigma", type=float, default=None,
+                   help="deg: std dev of the up measured from each keyframe's walls (BackendConfig.up_sigma_deg; "
+                        "default: the back end's; 0 = off)")
     p.add_argument("--kiss-max-range", type=float, default=None,
                    help="KISS-ICP's max_range in m (its voxels are a hundredth of it; default KissConfig's 100)")
     p.add_argument("--kiss-min-range", type=float, default=None,
@@ -139,6 +143,8 @@ def main(argv: list[str] | None = None) -> int:
     cpu = cpu_model()
     print(f"CPU: {cpu}, {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}")
     config = BackendConfig(gravity_sigma_deg=args.gravity_sigma)
+    if args.up_sigma is not None:
+        config = dataclasses.replace(config, up_sigma_deg=args.up_sigma)
     given = (("max_range", args.kiss_max_range), ("min_range", args.kiss_min_range))
     ranges = {k: v for k, v in given if v is not None}
     kiss = KissConfig(threads=args.threads, **ranges)
@@ -154,6 +160,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"back end: gravity prior {args.gravity_sigma:g} deg (the nodes' tilt held to the odometry's)")
     label = "KISS-ICP" if kiss_icp else "FAST-LIO2"
     tag_out = f"{tag}_gravity{args.gravity_sigma:g}" if args.gravity_sigma > 0 else tag  # outputs; the cache: tag
+    if config.up_sigma_deg > 0:
+        print(f"back end: the walls' up of each keyframe ({config.up_sigma_deg:g} deg)")
+    else:
+        tag_out += "_noup"
     rows = []
     for name in args.sets:
         cache = args.out / f"stream_{name}_{tag}.npz"
@@ -179,6 +189,12 @@ def main(argv: list[str] | None = None) -> int:
         ms = np.array(clean.loop_ms)
         print(f"  ATE {label} odometry {before.text()}\n  ATE with the back end {after.text()} "
               f"({after.rmse / before.rmse:.0%} of before; aligned {after.aligned / before.aligned:.0%})")
+        ups = int(np.isfinite(stream.ups).all(axis=1).sum())
+        loops_only = None
+        if config.up_sigma_deg > 0:
+            loops_only = trajectory_error(replay(stream.without_ups(), config=config).trajectory, stream.truth)
+            print(f"  the walls' up measured at {ups} of {len(stream.keyframes)} keyframes; without it (loops "
+                  f"only): ATE {loops_only.text()} ({loops_only.rmse / before.rmse:.0%} of before)")
         print(f"  loops: {int(clean.accepted.sum())} accepted ({int((clean.accepted & wrong).sum())} wrong), "
               f"{int((~clean.accepted).sum()) - len(clean.refused)} rejected ({int((~clean.accepted & wrong).sum())} "
               f"wrong), {len(clean.refused)} refused"
@@ -189,7 +205,9 @@ def main(argv: list[str] | None = None) -> int:
         row: dict[str, object] = {"set": name, "scans": n, "length_m": stream.length_m, "loops": len(stream.loops),
                                   "wrong_loops": int(wrong.sum()), "accepted": int(clean.accepted.sum()),
                                   "accepted_wrong": int((clean.accepted & wrong).sum()), "odometry": before.to_dict(),
-                                  "backend": after.to_dict(), "add_loop_ms_p50": float(np.median(ms)) if len(ms)
+                                  "backend": after.to_dict(), "ups": ups,
+                                  "loops_only": None if loops_only is None else loops_only.to_dict(),
+                                  "add_loop_ms_p50": float(np.median(ms)) if len(ms)
                                   else None, "seconds": stream.seconds, "injected": []}
         for count in args.inject:
             dirty = replay(stream, inject=count, seed=args.inject_seed, config=config, false_min_m=args.false_min_m)

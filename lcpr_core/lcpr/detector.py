@@ -52,6 +52,7 @@ from ..exclusion import matchable_prefix
 from ..keyframes import KeyframeConfig, keyframe_reason
 from ..pretrained import AUTO_DISTANCE, effective_max_distance, operating_threshold, resolve_weights
 from ..scan_context import ScanContextConfig, ScanContextRows
+from ..up import UpConfig, estimate_up
 from ..verification import (
     GeometricVerifier,
     PreparedCache,
@@ -130,6 +131,7 @@ class DetectorConfig:
     map: MapConfig = field(default_factory=MapConfig)
     verify: VerifierConfig = field(default_factory=VerifierConfig)
     submap: SubmapConfig = field(default_factory=SubmapConfig)  # local submaps verified instead of single scans
+    up: UpConfig = field(default_factory=UpConfig)  # each keyframe's up from its walls (Result.up), for the back end
     session: str = "session"  # source name stored with this run's keyframes
 
 
@@ -171,6 +173,7 @@ class Result:
     verification: bool = True  # candidates were verified (the loop must be a verified one)
     errors: list[str] = field(default_factory=list)  # why a candidate's verification "failed" (an exception)
     camera_errors: dict[int, str] = field(default_factory=dict)  # camera slot -> why its image was left out
+    up: np.ndarray | None = None  # (3,) unit up in the LiDAR frame from the keyframe's walls; None: not measured
 
     @property
     def loop(self) -> Candidate | None:
@@ -349,6 +352,11 @@ class LoopDetector:
             for rank, h in enumerate(hits)
         ]
         result.timings["add"] = time.perf_counter() - tic
+        if self.config.up.enabled and len(points):
+            tic = time.perf_counter()
+            found = estimate_up(points, config=self.config.up)
+            result.up = None if found is None else found.up
+            result.timings["up"] = time.perf_counter() - tic
 
         result.verification = self.config.verify.enabled
         if self.verifier.config is not self.config.verify:  # settings changed at run time

@@ -218,6 +218,106 @@ def test_a_gravity_prior_keeps_the_odometrys_tilt_against_a_loop_that_would_bend
         BackendConfig(gravity_sigma_deg=-0.5)
 
 
+def ramp_with_pitch_drift(*, bias_deg: float = -0.02, slope_deg: float = 4.0, length: int = 200
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(stamps, truth, odometry): a straight climb of ``slope_deg``, the odometry pitching by ``bias_deg`` per metre
+    (KISS-ICP's kind of tilt drift), both starting at the true first pose."""
+    rise = math.radians(slope_deg)
+    truth = np.stack([pose(x * math.cos(rise), 0.0, x * math.sin(rise), pitch=-slope_deg)
+                      for x in np.arange(0.0, float(length), 1.0)])
+    steps = np.linalg.inv(truth[:-1]) @ truth[1:]
+    odometry = [truth[0]]
+    for step in steps:
+        odometry.append(odometry[-1] @ step @ pose(pitch=bias_deg))
+    return T0 + DT * np.arange(len(truth)), truth, np.stack(odometry)
+
+
+def measured_up(truth: np.ndarray, i: int, rng: np.random.Generator, noise_deg: float = 0.5) -> np.ndarray:
+    """The world's up in the LiDAR frame of pose ``i``, as a wall estimate gives it (a random tilt of noise_deg)."""
+    up = (truth[i] @ BASE_T_LIDAR)[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+    wobble = pose(roll=float(rng.normal(0, noise_deg)), pitch=float(rng.normal(0, noise_deg)))[:3, :3]
+    return wobble @ up
+
+
+def test_measured_ups_remove_a_tilt_drift_and_keep_a_real_slope() -> None:
+    stamps, truth, odometry = ramp_with_pitch_drift()
+    rng = np.random.default_rng(0)
+
+    def corrected(config: BackendConfig) -> np.ndarray:
+        g = PoseGraphBackend(dataclasses.replace(config, base_T_lidar=BASE_T_LIDAR))
+        for i, (t, p) in enumerate(zip(stamps, odometry, strict=True)):
+            g.add_odometry(float(t), p)
+            if i % 5 == 0:
+                assert g.add_up(float(t), measured_up(truth, i, rng)) == (config.up_sigma_deg > 0)
+        assert g.stats().ups == (40 if config.up_sigma_deg > 0 else 0)
+        return g.trajectory()[1]
+
+    drift = abs(odometry[-1, 2, 3] - truth[-1, 2, 3])
+    assert drift > 5.0  # 0.02 deg per metre over 200 m: metres of height
+    assert abs(corrected(BackendConfig(up_sigma_deg=0.0))[-1, 2, 3] - truth[-1, 2, 3]) > 0.9 * drift  # off: as before
+    with_ups = corrected(BackendConfig())
+    assert abs(with_ups[-1, 2, 3] - truth[-1, 2, 3]) < 0.15 * drift  # the climb kept, the drift gone
+    assert ate_rmse(with_ups, truth) < 0.2 * ate_rmse(odometry, truth)
+
+
+def test_ups_from_a_tilted_start_leave_a_right_trajectory_as_it_was() -> None:
+    """A handheld sensor started 6 deg off level: the odometry's frame is not level, the ups say so, and the
+    world's up taken from the first metres makes them agree with a trajectory that has no drift."""
+    stamps, truth, _ = ramp_with_pitch_drift(slope_deg=0.0, length=80)
+    tilted = pose(roll=6.0) @ truth  # the odometry's world frame: the first sensor frame, 6 deg off level
+    rng = np.random.default_rng(1)
+    g = PoseGraphBackend(BackendConfig(base_T_lidar=BASE_T_LIDAR))
+    for i, (t, p) in enumerate(zip(stamps, tilted, strict=True)):
+        g.add_odometry(float(t), p)
+        if i % 2 == 0:
+            g.add_up(float(t), measured_up(truth, i, rng, noise_deg=0.2))
+    assert np.abs(g.trajectory()[1][:, :3, 3] - tilted[:, :3, 3]).max() < 0.1
+
+
+@pytest.mark.parametrize("bad, message", [
+    (np.zeros(3), r"up at stamp .* is \[0\. 0\. 0\.\]; expected a finite non-zero 3-vector"),
+    (np.array([0.0, np.nan, 1.0]), r"up at stamp .* is \[ 0\. nan  1\.\]; expected a finite non-zero 3-vector"),
+    ([0.0, 1.0], r"expected a finite non-zero 3-vector"),
+    ("up", r"up at stamp .* is 'up'; expected a finite non-zero 3-vector"),
+])
+def test_a_bad_up_is_refused_naming_the_value_and_the_graph_stays_as_it_was(bad: object, message: str) -> None:
+    stamps, _, drifted, _ = drive()
+    g = fed(stamps[:20], drifted[:20])
+    before = g.trajectory()[1]
+    with pytest.raises(BackendError, match=message):
+        g.add_up(float(stamps[10]), bad)  # type: ignore[arg-type]
+    with pytest.raises(BackendError, match=r"up stamp=.* is older than the graph"):
+        g.add_up(float(stamps[0]) - 100.0, np.array([0.0, 0.0, 1.0]))
+    assert g.stats().refused == {"up bad vector": 1, "loop stamp older than the graph": 1} and g.stats().ups == 0
+    np.testing.assert_array_equal(g.trajectory()[1], before)
+
+
+def test_measured_ups_are_saved_and_a_graph_saved_before_them_still_loads(tmp_path: Path) -> None:
+    stamps, truth, odometry = ramp_with_pitch_drift(length=120)
+    rng = np.random.default_rng(2)
+    config = BackendConfig(base_T_lidar=BASE_T_LIDAR)
+    g = PoseGraphBackend(config)
+    for i, (t, p) in enumerate(zip(stamps[:80], odometry[:80], strict=True)):
+        g.add_odometry(float(t), p)
+        if i % 5 == 0:
+            g.add_up(float(t), measured_up(truth, i, rng))
+    g.save(tmp_path / "graph.npz")
+    loaded = PoseGraphBackend.load(tmp_path / "graph.npz", config)
+    assert loaded.stats().ups == g.stats().ups == 16
+    np.testing.assert_allclose(loaded.trajectory()[1], g.trajectory()[1], atol=1e-3)
+    for i in range(80, 120):  # both continue alike
+        for backend in (g, loaded):
+            backend.add_odometry(float(stamps[i]), odometry[i])
+            if i % 5 == 0:
+                backend.add_up(float(stamps[i]), measured_up(truth, i, np.random.default_rng(i)))
+    np.testing.assert_allclose(loaded.trajectory()[1], g.trajectory()[1], atol=5e-3)  # iSAM2's relinearisation
+
+    with np.load(tmp_path / "graph.npz", allow_pickle=False) as npz:  # a version-1 file: no up arrays
+        old = {k: npz[k] for k in npz.files if not k.startswith("up_")}
+    np.savez(tmp_path / "v1.npz", **{**old, "version": np.array(1)})
+    assert PoseGraphBackend.load(tmp_path / "v1.npz", config).stats().ups == 0
+
+
 # ============================================================================ keyframes and poses
 def test_keyframing_adds_a_node_per_metre_or_turn_not_per_message() -> None:
     stamps, truth, drifted, _ = drive(step=0.1)  # 0.1 m per message: ten messages per metre
@@ -306,7 +406,7 @@ def test_loading_refuses_another_schema_version_extrinsic_or_a_damaged_file(tmp_
 
     with pytest.raises(BackendError, match=r"schema 'other'; expected 'lcpr_backend_graph'"):
         PoseGraphBackend.load(written(schema=np.array("other")))
-    with pytest.raises(BackendError, match=r"version 99; this back end reads version 1"):
+    with pytest.raises(BackendError, match=r"version 99; this back end reads versions 1 to 2"):
         PoseGraphBackend.load(written(version=np.array(99)))
     with pytest.raises(BackendError, match=r"saved with base_T_lidar"):
         PoseGraphBackend.load(path, BackendConfig(base_T_lidar=BASE_T_LIDAR))
@@ -438,6 +538,8 @@ def test_a_loop_stamp_inside_an_odometry_gap_was_never_seen() -> None:
     (lambda: BackendConfig(relinearize_translation=0.0), r"relinearize_translation=0\.0; expected a finite number > 0"),
     (lambda: BackendConfig(wildfire_threshold=-1.0), r"wildfire_threshold=-1\.0; expected a finite number >= 0"),
     (lambda: BackendConfig(factorization="lu"), r"factorization='lu'; expected one of auto, cholesky, qr"),
+    (lambda: BackendConfig(up_sigma_deg=-1.0), r"up_sigma_deg=-1\.0; expected a finite number >= 0"),
+    (lambda: BackendConfig(up_warmup_m=math.nan), r"up_warmup_m=nan; expected a finite number >= 0"),
 ])
 def test_bad_options_are_refused_naming_the_value(make: object, message: str) -> None:
     with pytest.raises(BackendError, match=message):

@@ -15,7 +15,7 @@ pytest.importorskip("gtsam")
 rclpy = pytest.importorskip("rclpy")
 
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from geometry_msgs.msg import TransformStamped  # noqa: E402
+from geometry_msgs.msg import TransformStamped, Vector3Stamped  # noqa: E402
 from nav_msgs.msg import Odometry  # noqa: E402
 from nav_msgs.msg import Path as PathMsg  # noqa: E402
 from rclpy.context import Context  # noqa: E402
@@ -25,10 +25,11 @@ from std_msgs.msg import Float64MultiArray  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from lcpr_core.backend import PoseGraphBackend  # noqa: E402
+from lcpr_core.lcpr.detector import Result  # noqa: E402
 from lcpr_core.posegraph import DriftModel, ate_rmse, drift_odometry  # noqa: E402
 from lcpr_ros.backend_config import BackendNodeConfig, LidarMount, settings_from, yaml_text  # noqa: E402
 from lcpr_ros.backend_node import BackendNode, TFMessage  # noqa: E402
-from lcpr_ros.outputs import CANDIDATE_COLUMNS  # noqa: E402
+from lcpr_ros.outputs import CANDIDATE_COLUMNS, up_msg  # noqa: E402
 from msg_tools.geometry import matrix_to_quaternion  # noqa: E402
 from msg_tools.transforms import odometry_to_pose, pose_to_odometry  # noqa: E402
 from ros_common.errors import ConfigError  # noqa: E402
@@ -61,7 +62,8 @@ def ros(tmp_path: Path) -> Iterator[Ros]:
     context = Context()
     rclpy.init(context=context, domain_id=random.randint(1, 100))
     graph_path = tmp_path / "graph.npz"
-    params = {"odom_topic": f"{prefix}/odom", "candidates_topic": f"{prefix}/candidates", "input_qos": "reliable",
+    params = {"odom_topic": f"{prefix}/odom", "candidates_topic": f"{prefix}/candidates", "up_topic": f"{prefix}/up",
+              "input_qos": "reliable",
               "graph.path": str(graph_path), "lidar.xyz": list(MOUNT.xyz), "lidar.rpy": list(MOUNT.rpy),
               "diagnostics.period": 0.2, "path_period": 0.2}
     node = BackendNode(context=context, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
@@ -147,6 +149,26 @@ def test_odometry_and_one_verified_candidate_row_come_back_as_a_corrected_path(r
         return any(kv.key == "loops accepted" and kv.value == "1" for d in ros.diagnostics for s in d.status
                    for kv in s.values)
     assert wait_until(diagnosed, 10)
+
+
+def test_the_detectors_ups_are_taken_and_a_bad_one_is_counted(ros: Ros) -> None:
+    truth, _ = square_laps(side=30.0, step=0.5, laps=1)
+    stamps = T0 + DT * np.arange(len(truth))
+    up_pub = ros.driver.create_publisher(Vector3Stamped, ros.node.settings.up_topic, CANDIDATE_QOS)
+    assert wait_until(lambda: up_pub.get_subscription_count() > 0, 20)
+    lidar = truth @ MOUNT.matrix()
+    published(ros, stamps, truth)
+    for i in range(0, len(truth), 20):
+        up = lidar[i, :3, :3].T @ np.array([0.0, 0.0, 1.0])
+        up_pub.publish(up_msg(Result(stamp=float(stamps[i]), keyframe_id=i, reason="keyframe", up=up), "lidar"))
+    sent = len(range(0, len(truth), 20))
+    assert wait_until(lambda: ros.node._stats.ups == sent, 20), ros.node._stats
+    np.testing.assert_allclose(ros.node.backend.trajectory()[1][:, :3, 3], truth[:, :3, 3], atol=0.02)  # true ups
+    bad = Vector3Stamped()
+    bad.header.stamp.sec = int(stamps[-1])
+    up_pub.publish(bad)  # a zero vector
+    assert wait_until(lambda: ros.node._stats.refused.get("up bad vector") == 1, 20), ros.node._stats
+    assert ros.node._stats.ups == sent
 
 
 def test_refused_inputs_are_counted_and_the_graph_is_saved_on_request(ros: Ros) -> None:

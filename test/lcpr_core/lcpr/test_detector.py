@@ -157,7 +157,7 @@ def test_a_candidate_from_a_frame_with_a_dark_camera_is_flagged_degraded():
 
 def test_stage_timings_are_reported_for_keyframes():
     r = detector().process(frame(0.0, 1.0))
-    assert set(r.timings) == {"preprocess", "network", "search", "add"}
+    assert set(r.timings) == {"preprocess", "network", "search", "add", "up"}
 
 
 def test_bad_settings_are_refused_with_the_setting_named():
