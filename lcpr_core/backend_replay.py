@@ -134,6 +134,19 @@ class LoopStream:
             loop_cov=np.concatenate([self.loop_cov, np.array(covs).reshape(-1, 6, 6)]))
         return out, skipped
 
+    def with_ups(self, ups: Iterable[tuple[float, np.ndarray]], *, tolerance: float = 1e-3) -> tuple[LoopStream, int]:
+        """(this stream with each ``(stamp, up)`` set on the keyframe at that stamp (within ``tolerance`` s), how
+        many named no keyframe): ups measured apart from the recording (a node's ``~/up``)."""
+        out, skipped = self.ups.copy(), 0
+        key_stamps = self.stamps[self.keyframes]
+        for t, up in ups:
+            k = int(np.argmin(np.abs(key_stamps - float(t)))) if len(key_stamps) else -1
+            if k < 0 or abs(key_stamps[k] - float(t)) > tolerance:
+                skipped += 1
+                continue
+            out[k] = np.asarray(up, np.float64).reshape(3)
+        return dataclasses.replace(self, ups=out), skipped
+
     def save(self, path: str | os.PathLike[str]) -> None:
         """Write the stream as .npz (atomically, no pickled objects): a cache of a slow recording."""
         with atomic_path(path) as tmp, open(tmp, "wb") as fh:

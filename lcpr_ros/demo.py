@@ -15,7 +15,7 @@
 
 ``--odometry kiss-icp`` adds what a robot without another odometry gets: KISS-ICP run on the drive's own
 LiDAR (rendered every metre along the same path in the same world, :mod:`lcpr_offline.drive_odometry`:
-the bag's 5 m keyframes are too far apart for it), the node's verified candidates as loops, and the
+the bag's 5 m keyframes are too far apart for it), the node's verified candidates as loops (and its ``~/up``), and the
 online back end (:mod:`lcpr_core.backend_replay`): ATE RMSE before and after against the drive's ground
 truth, and ``backend.png``. The default (``drift``) prints only the seeded-drift pose graph above.
 """
@@ -234,6 +234,7 @@ def kiss_icp_backend(args: argparse.Namespace, out) -> tuple[BackendEvaluation, 
     loops = [(r["query_stamp"], r["match_stamp"], pose, row_covariance(r)) for r in rows
              if (pose := row_pose(r)) is not None]
     stream, skipped = stream.with_loops(loops)
+    stream, _ = stream.with_ups(out.ups)  # the node's ~/up of each keyframe
     return evaluate_backend(stream, odometry_name="KISS-ICP"), skipped
 
 

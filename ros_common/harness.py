@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import Vector3Stamped
 from nav_msgs.msg import Odometry
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
@@ -32,6 +33,7 @@ from msg_tools.pointcloud import array_to_pointcloud2, xyz_cloud
 from msg_tools.transforms import pose_to_odometry
 
 from .qos import CANDIDATE_QOS
+from .stamps import NS_PER_S, stamp_ns
 from .tables import parse_candidates
 
 SMALL_IMAGE = (48, 128)  # height, width of synthetic camera images
@@ -188,10 +190,11 @@ class Outputs:
     candidates: list[list[dict[str, float]]] = field(default_factory=list)
     diagnostics: list[DiagnosticArray] = field(default_factory=list)
     received: list[float] = field(default_factory=list)  # monotonic time of each ~/candidates message
+    ups: list[tuple[float, np.ndarray]] = field(default_factory=list)  # (stamp, up) of each ~/up message
 
 
 class OutputListener:
-    """Subscribes to a node's ``~/loop_closure``, ``~/candidates`` and ``/diagnostics``."""
+    """Subscribes to a node's ``~/loop_closure``, ``~/candidates``, ``~/up`` and ``/diagnostics``."""
 
     def __init__(self, node: Node, target: str = "/lcpr", *, keep_diagnostics: int = 50) -> None:
         self.node = node
@@ -201,7 +204,14 @@ class OutputListener:
         self._keep = keep_diagnostics
         node.create_subscription(Float64MultiArray, f"{target}/loop_closure", self._on_loop, CANDIDATE_QOS)
         node.create_subscription(Float64MultiArray, f"{target}/candidates", self._on_candidates, CANDIDATE_QOS)
+        node.create_subscription(Vector3Stamped, f"{target}/up", self._on_up, CANDIDATE_QOS)
         node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 10)
+
+    def _on_up(self, msg: Vector3Stamped) -> None:
+        v = msg.vector
+        with self._cond:
+            self.out.ups.append((stamp_ns(msg.header) / NS_PER_S, np.array([v.x, v.y, v.z])))
+            self._cond.notify_all()
 
     def _on_loop(self, msg: Float64MultiArray) -> None:
         with self._cond:

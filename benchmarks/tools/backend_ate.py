@@ -18,6 +18,10 @@
    SE(3)-aligned beside) of the odometry and of the corrected trajectory against the ground truth, and a
    top view (posegraph.plot_trajectories).
 
+The detector also measures each keyframe's up from its walls (lcpr_core.up) and the back end holds the map's
+roll and pitch with it (the default; ``--up-sigma 0``: loops only; ``--up-sigma DEG``: its std dev); the run
+then also prints what the ups do without a single loop.
+
 ``--level-sigma DEG`` gives the back end its level prior (``BackendConfig.level_sigma_deg``: a ground
 vehicle's roll and pitch are level on average), which removes the height error of KISS-ICP's pitch bias
 that loops cannot observe (2 deg: chosen on validation city seed 3 by benchmarks/studies/backend_vertical.py);

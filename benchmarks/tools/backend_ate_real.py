@@ -14,8 +14,9 @@ For each scan folder of ``../shared/data/livox_hku`` (handheld Livox Avia, about
    keyframing, matching and verification: what ``lcpr_node lidar_only:=true`` runs) on every scan, with
    the KISS-ICP pose as the frame's pose;
 3. the back end (lcpr_core.backend, default configuration: no level prior, a handheld sensor is not a
-   ground vehicle) fed online: each odometry pose, then the keyframe's verified candidates as loops
-   (lcpr_core.backend_replay);
+   ground vehicle; the walls' up of each keyframe, which a 70 deg Livox scan never measures, so
+   ``--up-sigma`` changes nothing unless the detector's ``up.min_fov_deg`` does) fed online: each
+   odometry pose, then the keyframe's verified candidates as loops (lcpr_core.backend_replay);
 4. ATE RMSE of the odometry and of the corrected trajectory against ``optimized_poses.txt`` (the SLAM
    system's poses after its own loop closing: a reference good to a few cm, not surveyed truth), without
    alignment (both start at the first reference pose) and after a rigid SE(3) fit; a top view per set;

@@ -15,7 +15,9 @@ consistency check, the iSAM2 update and the extra relinearising updates):
   (the most expensive update there is: every node moves), on ``--first-seeds`` seeds.
 
 Also the cost of one odometry message (``add_odometry``: a relinearisation put off by a loop would show
-there). Prints p50/p95 in ms (wall and CPU time of this process) and the CPU with its load.
+there) and of one measured up (``add_up``, every ``--up-every`` messages, as the detector's keyframes
+send them; those factors are in the graph the loops are timed on). Prints p50/p95 in ms (wall and CPU
+time of this process) and the CPU with its load.
 
 Variants: ``--set NAME=VALUE`` changes a BackendConfig field for every run (dotted for the nested ones:
 ``loops.iterations=1``, ``relinearize_translation=1.0``); each ``--variant`` (comma-separated settings, or
@@ -50,6 +52,7 @@ class Timing:
     loop_s: list[float]
     loop_cpu: list[float]
     odom_s: list[float]
+    up_s: list[float]
     first_s: list[float]
     trajectory: np.ndarray
     accepted: int
@@ -68,6 +71,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--variant", action="append", default=[], metavar="NAME=VALUE[,...]",
                    help="one more configuration timed after the first (repeat; 'default' = --set only)")
     p.add_argument("--rounds", type=int, default=1, help="times the whole sequence of variants is run, interleaved")
+    p.add_argument("--up-every", type=int, default=5,
+                   help="messages (m) between measured ups (add_up, the true up with 0.5 deg of noise: a detector "
+                        "keyframe every 5 m); 0 = none")
     args = p.parse_args(argv)
 
     from lcpr_core.backend import BackendConfig
@@ -88,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
             label = spec if not common else f"{spec} (+ {', '.join(args.settings)})"
             print(f"-- round {r + 1}/{args.rounds}, variant {k}: {label}", flush=True)
             res = run_variant(config, truth, per_lap=per_lap, nodes=args.nodes, loops=args.loops, seed=args.seed,
-                              first_seeds=args.first_seeds)
+                              first_seeds=args.first_seeds, up_every=args.up_every)
             results[k].append(res)
             print(f"  steady: {len(res.loop_s)} loops timed at {args.nodes}-{res.nodes} nodes "
                   f"({res.accepted} accepted, {res.rejected} rejected in all)")
@@ -97,6 +103,9 @@ def main(argv: list[str] | None = None) -> int:
                   f"(CPU time of this process: p50 {_ms(res.loop_cpu, 50)} ms, p95 {_ms(res.loop_cpu, 95)} ms)")
             print(f"  add_odometry p50 {_ms(res.odom_s, 50)} ms, p95 {_ms(res.odom_s, 95)} ms, "
                   f"max {_ms(res.odom_s, 100)} ms over {len(res.odom_s)} messages at >= {args.nodes} nodes")
+            if res.up_s:
+                print(f"  add_up p50 {_ms(res.up_s, 50)} ms, p95 {_ms(res.up_s, 95)} ms, max {_ms(res.up_s, 100)} ms "
+                      f"over {len(res.up_s)} ups at >= {args.nodes} nodes")
             if res.first_s:
                 print(f"  first closure at {args.nodes} nodes: p50 {_ms(res.first_s, 50)} ms, "
                       f"max {_ms(res.first_s, 100)} ms ({len(res.first_s)} seeds)")
@@ -119,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def run_variant(config: Any, truth: np.ndarray, *, per_lap: int, nodes: int, loops: int, seed: int,
-                first_seeds: int) -> Timing:
+                first_seeds: int, up_every: int = 0) -> Timing:
     """Time one configuration: the steady case, then the first closure on ``first_seeds`` seeds."""
     from lcpr_core.backend import PoseGraphBackend
     from lcpr_core.posegraph import DriftModel, drift_odometry
@@ -135,7 +144,9 @@ def run_variant(config: Any, truth: np.ndarray, *, per_lap: int, nodes: int, loo
 
     drifted, _ = drift_odometry(truth, model=DriftModel(seed=seed))
     g = PoseGraphBackend(config)
+    rng = np.random.default_rng(seed)
     odom_s: list[float] = []
+    up_s: list[float] = []
     loop_s: list[float] = []
     loop_cpu: list[float] = []
     n = 0
@@ -144,6 +155,13 @@ def run_variant(config: Any, truth: np.ndarray, *, per_lap: int, nodes: int, loo
         g.add_odometry(float(stamps[i]), drifted[i])
         if g.stats().nodes >= nodes:
             odom_s.append(time.perf_counter() - tic)
+        if up_every and i % up_every == 0:  # the LiDAR frame is the base frame here (BackendConfig's default)
+            tilt = rng.normal(0.0, math.radians(0.5), 3)
+            up = truth[i, :3, :3].T @ np.array([0.0, 0.0, 1.0]) + np.cross(tilt, [0.0, 0.0, 1.0])
+            tic = time.perf_counter()
+            g.add_up(float(stamps[i]), up)
+            if g.stats().nodes >= nodes:
+                up_s.append(time.perf_counter() - tic)
         if i >= per_lap and i % EVERY == 0:
             _, seconds, cpu = loop(g, i, i - per_lap)
             if g.stats().nodes >= nodes and len(loop_s) < loops:
@@ -165,7 +183,7 @@ def run_variant(config: Any, truth: np.ndarray, *, per_lap: int, nodes: int, loo
         first_s.append(seconds)
         print(f"  first closure, seed {s}: {'accepted' if ok else 'REJECTED'}, chi2 {h.stats().last_chi2:.1f}, "
               f"{seconds * 1e3:.1f} ms ({q - q % per_lap} m of open drift)")
-    return Timing(loop_s, loop_cpu, odom_s, first_s, trajectory, stats.loops_accepted, stats.loops_rejected, n)
+    return Timing(loop_s, loop_cpu, odom_s, up_s, first_s, trajectory, stats.loops_accepted, stats.loops_rejected, n)
 
 
 def _split(spec: str) -> list[str]:

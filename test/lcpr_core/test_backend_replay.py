@@ -123,6 +123,28 @@ def test_a_stream_is_saved_and_loaded_unchanged(tmp_path: Path) -> None:
     assert back.seconds == {"kiss_icp": 1.5}
 
 
+def test_measured_ups_are_recorded_saved_and_replayed_into_the_back_end(tmp_path: Path) -> None:
+    stream, _ = recorded(laps=1)
+    assert stream.ups.shape == (len(stream.keyframes), 3) and np.isnan(stream.ups).all()  # none measured
+    rec = StreamRecorder(base_T_lidar=EXT)
+    for i, t in enumerate(stream.stamps):
+        rec.add_frame(float(t), odometry=stream.odometry[i], truth=stream.truth[i])
+        if i % EVERY == 0:
+            up = (stream.truth[i] @ EXT)[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+            rec.add_result(Result(stamp=float(t), keyframe_id=i // EVERY, reason="keyframe", up=up))
+    measured = rec.stream()
+    assert np.isfinite(measured.ups).all()
+    measured.save(tmp_path / "stream.npz")
+    np.testing.assert_array_equal(LoopStream.load(tmp_path / "stream.npz").ups, measured.ups)
+    assert replay(measured).stats.ups == len(measured.keyframes)
+    assert replay(measured.without_ups()).stats.ups == 0
+
+    given = [(float(measured.stamps[k]), u) for k, u in zip(measured.keyframes, measured.ups, strict=True)]
+    joined, skipped = stream.with_ups([*given, (0.5, np.array([0.0, 0.0, 1.0]))])  # the last names no keyframe
+    assert skipped == 1
+    np.testing.assert_array_equal(joined.ups, measured.ups)
+
+
 def test_the_recorder_refuses_frames_out_of_order_and_results_of_frames_it_never_saw() -> None:
     rec = StreamRecorder(base_T_lidar=np.eye(4))
     rec.add_frame(10.0, odometry=np.eye(4), truth=None)
