@@ -110,6 +110,7 @@ _CONVERGED_M, _CONVERGED_RAD = 1e-3, math.radians(0.01)  # an extra iSAM2 update
 _PATH_LENGTH_M = 10.0  # a radian of relative-pose uncertainty weighs as much as 10 m when choosing the path
 FACTORIZATIONS = ("auto", "cholesky", "qr")
 _SLACK = 1e-6  # m, rad and s: round-off allowed when a keyframe criterion is compared
+_UP_CHAR = "u"  # Symbol character of the world's up variable (graph nodes are plain integers: character '\0')
 
 # reasons a refusal is counted under (BackendError.reason)
 ODOM_ORDER = "odometry out of order"
@@ -269,6 +270,10 @@ class BackendConfig:
     # m of travel from the first node: the ups measured within it, carried by the odometry, are averaged into the
     # world's up (fixed at the first measurement beyond it); short, so that the odometry's drift stays out of it
     up_warmup_m: float = 10.0
+    # deg, > 0: the world's up is a graph variable held to the warm-up's mean with this std dev, refined by every
+    # measured up, so a few noisy scans cannot tilt the map; but a variable joined to every node makes add_loop's
+    # p95 3-4 times dearer at 2,000 nodes. 0 (the default): the warm-up's mean is fixed
+    up_world_sigma_deg: float = 0.0
 
     def __post_init__(self) -> None:
         try:
@@ -288,6 +293,7 @@ class BackendConfig:
         _finite_non_negative(self, "gravity_sigma_deg")
         _finite_non_negative(self, "up_sigma_deg")
         _finite_non_negative(self, "up_warmup_m")
+        _finite_non_negative(self, "up_world_sigma_deg")
         _finite_non_negative(self, "wildfire_threshold")
         _require(self.factorization in FACTORIZATIONS,
                  f"BackendConfig.factorization={self.factorization!r}; expected one of {', '.join(FACTORIZATIONS)}")
@@ -351,6 +357,8 @@ class PoseGraphBackend:
         self._qr = config.factorization == "qr"
         self._isam = self._new_isam()
         self._up_world: np.ndarray | None = None  # the world's up in the odometry frame, once warmed up
+        self._up_key = int(self._gtsam.symbol(_UP_CHAR, 0))  # the world's up as a variable (up_world_sigma_deg)
+
         self._ups: list[tuple[float, int, np.ndarray]] = []  # (stamp, node, up in that node's base frame)
 
     # -- inputs ------------------------------------------------------------------------------
@@ -462,10 +470,12 @@ class PoseGraphBackend:
             taken = self._ups
         else:
             taken = self._ups[-1:]
-        graph = self._gtsam.NonlinearFactorGraph()
+        graph, values = self._gtsam.NonlinearFactorGraph(), self._gtsam.Values()
+        if taken is self._ups:
+            self._add_world_up(graph, values, self._up_world)
         for _, n, b in taken:
             self._add_up_factor(graph, n, b, self._up_world)
-        self._update(graph, self._gtsam.Values())
+        self._update(graph, values)
         self._refresh()
         return True
 
@@ -528,6 +538,7 @@ class PoseGraphBackend:
             "up_nodes": np.array([u[1] for u in self._ups], np.int64),
             "up_body": np.array([u[2] for u in self._ups], np.float64).reshape(-1, 3),
             "up_world": np.full(3, np.nan) if self._up_world is None else self._up_world,
+
             "counters": np.array(json.dumps(counters)),
         }
         with atomic_path(path) as tmp:
@@ -556,6 +567,7 @@ class PoseGraphBackend:
         # whose Symbol character is '\0'
         limits = gt.ISAM2ThresholdMap()
         limits.insert(("\0", np.array([cfg.relinearize_threshold] * 3 + [cfg.relinearize_translation] * 3)))
+        limits.insert((_UP_CHAR, np.array([cfg.relinearize_threshold] * 3 + [cfg.relinearize_translation] * 3)))
         params.setRelinearizeThreshold(limits)
         params.setOptimizationParams(gt.ISAM2GaussNewtonParams(float(cfg.wildfire_threshold)))
         params.relinearizeSkip = 1
@@ -647,12 +659,44 @@ class PoseGraphBackend:
                 noise = gt.noiseModel.Isotropic.Sigma(2, math.radians(sigma_deg))
                 graph.add(gt.AttitudeFactorPose3(node, gt.Unit3(up), noise, gt.Unit3(body_up)))
 
+    def _add_world_up(self, graph: Any, values: Any, world_up: np.ndarray) -> None:
+        """The world's up as a graph variable (a Pose3 whose z axis it is), held to ``world_up`` with
+        ``up_world_sigma_deg`` in tilt and fixed in heading and position (which nothing observes)."""
+        sigma = self.config.up_world_sigma_deg
+        if sigma <= 0:
+            return
+        gt = self._gtsam
+        pose = np.eye(4)
+        pose[:3, :3] = _rotation_to(world_up)
+        noise = gt.noiseModel.Diagonal.Sigmas(np.array([math.radians(sigma)] * 2 + [1e-4] * 4))
+        values.insert(self._up_key, _pose3(gt, pose))
+        graph.add(gt.PriorFactorPose3(self._up_key, _pose3(gt, pose), noise))
+
     def _add_up_factor(self, graph: Any, node: int, body_up: np.ndarray, world_up: np.ndarray) -> None:
-        """The measured up of ``node`` (its base frame) held to the world's up: add_up."""
+        """The measured up of ``node`` (its base frame) held to the world's up (add_up): to ``world_up``, or with
+        ``up_world_sigma_deg`` > 0 to the world's up variable, the error then being the x, y of the node's up in
+        the variable's frame, ``R_u^T R_n b`` (0 when they agree)."""
         gt = self._gtsam
         noise = gt.noiseModel.Robust.Create(gt.noiseModel.mEstimator.Huber.Create(1.345),
                                             gt.noiseModel.Isotropic.Sigma(2, math.radians(self.config.up_sigma_deg)))
-        graph.add(gt.AttitudeFactorPose3(node, gt.Unit3(world_up), noise, gt.Unit3(body_up)))
+        if self.config.up_world_sigma_deg <= 0:
+            graph.add(gt.AttitudeFactorPose3(node, gt.Unit3(world_up), noise, gt.Unit3(body_up)))
+            return
+        body = np.array(body_up, np.float64)
+
+        def error(factor: Any, values: Any, jacobians: Any) -> np.ndarray:
+            up_key, node_key = factor.keys()
+            r_up = values.atPose3(up_key).rotation().matrix()
+            r_node = values.atPose3(node_key).rotation().matrix()
+            w = r_up.T @ r_node @ body
+            if jacobians is not None:  # right perturbations, Pose3 tangent (rotation, translation)
+                j_up, j_node = np.zeros((2, 6)), np.zeros((2, 6))
+                j_up[:, :3] = skew(w)[:2]
+                j_node[:, :3] = -(r_up.T @ r_node @ skew(body))[:2]
+                jacobians[0], jacobians[1] = j_up, j_node
+            return np.asarray(w[:2])
+
+        graph.add(gt.CustomFactor(noise, [self._up_key, node], error))
 
     def _loop_noise(self, gtsam_cov: np.ndarray) -> Any:
         gt = self._gtsam
@@ -895,6 +939,7 @@ class PoseGraphBackend:
         if np.isfinite(data["up_world"]).all():
             self._up_world = data["up_world"] / np.linalg.norm(data["up_world"])
             if self.config.up_sigma_deg > 0:
+                self._add_world_up(graph, values, self._up_world)
                 for _, n, b in self._ups:
                     self._add_up_factor(graph, n, b, self._up_world)
         self._update(graph, values)
@@ -952,6 +997,17 @@ def _rotation_angle(r: np.ndarray) -> float:
     return math.radians(float(rotation_angle_deg(r)))
 
 
+def _rotation_to(up: np.ndarray) -> np.ndarray:
+    """The smallest rotation taking the z axis to the unit vector ``up``."""
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(z, up)
+    s, c = float(np.linalg.norm(axis)), float(z @ up)
+    if s < 1e-12:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    k = skew(axis / s)
+    return np.eye(3) + s * k + (1.0 - c) * (k @ k)
+
+
 def _adjoint(pose: np.ndarray) -> np.ndarray:
     """GTSAM's Pose3 adjoint in its (rot, trans) tangent order: [[R, 0], [[t]x R, R]]."""
     r, t = pose[:3, :3], pose[:3, 3]
@@ -991,6 +1047,6 @@ def config_dict(config: BackendConfig) -> dict[str, Any]:
                factorization=config.factorization,
                level_sigma_deg=config.level_sigma_deg,
                gravity_sigma_deg=config.gravity_sigma_deg, up_sigma_deg=config.up_sigma_deg,
-               up_warmup_m=config.up_warmup_m)
+               up_warmup_m=config.up_warmup_m, up_world_sigma_deg=config.up_world_sigma_deg)
     return out
 

@@ -58,6 +58,7 @@ class BackendNodeConfig:
     gravity_sigma_deg: float = 0.0  # > 0: each node's tilt held to the odometry's (LIO: it measures gravity); 0 = off
     up_sigma_deg: float = BackendConfig().up_sigma_deg  # std dev of a measured up (up_topic); 0 = ignored
     up_warmup_m: float = BackendConfig().up_warmup_m  # m of travel whose measured ups set the world's up
+    up_world_sigma_deg: float = BackendConfig().up_world_sigma_deg  # > 0: the world's up a graph variable
     graph: MapFileConfig = field(default_factory=MapFileConfig)
     diagnostics: DiagnosticsConfig = field(default_factory=DiagnosticsConfig)
     keyframes: KeyframeRule = field(default_factory=KeyframeRule)
@@ -72,7 +73,7 @@ class BackendNodeConfig:
         require(math.isfinite(self.path_period) and self.path_period > 0,
                 f"path_period={self.path_period}; it must be > 0 s")
         require(math.isfinite(self.pending_s) and self.pending_s >= 0, f"pending_s={self.pending_s}; it must be >= 0")
-        for name in ("level_sigma_deg", "gravity_sigma_deg", "up_sigma_deg", "up_warmup_m"):
+        for name in ("level_sigma_deg", "gravity_sigma_deg", "up_sigma_deg", "up_warmup_m", "up_world_sigma_deg"):
             value = getattr(self, name)
             require(math.isfinite(value) and value >= 0, f"{name}={value}; it must be >= 0 (0 = off)")
 
@@ -80,7 +81,7 @@ class BackendNodeConfig:
         return BackendConfig(base_T_lidar=self.lidar.matrix(), keyframes=self.keyframes, odometry=self.odometry,
                              loops=self.loops, level_sigma_deg=self.level_sigma_deg,
                              gravity_sigma_deg=self.gravity_sigma_deg, up_sigma_deg=self.up_sigma_deg,
-                             up_warmup_m=self.up_warmup_m)
+                             up_warmup_m=self.up_warmup_m, up_world_sigma_deg=self.up_world_sigma_deg)
 
 
 DOCS: dict[str, ParamDoc] = {
@@ -110,6 +111,9 @@ DOCS: dict[str, ParamDoc] = {
                              "holds the roll and pitch loops cannot see, on slopes too; 0 = ignored", 0.0, 90.0),
     "up_warmup_m": ParamDoc("m of travel from the first node whose measured ups, averaged, set the world's up",
                             0.0, 1e6),
+    "up_world_sigma_deg": ParamDoc("deg: > 0 makes the world's up a graph variable held to the warm-up's mean with "
+                                   "this std dev and refined by every up (noisy ups tilt the map less; add_loop p95 "
+                                   "several times dearer); 0 = fixed at the warm-up's mean", 0.0, 90.0),
     "graph.path": ParamDoc("graph file (.npz): loaded at start when it exists (the graph continues), saved by "
                            "~/save_graph and at shutdown; empty = in memory only"),
     "graph.save_on_shutdown": ParamDoc("save the graph to graph.path when the node stops (Ctrl-C, SIGTERM)"),

@@ -34,14 +34,18 @@ def test_the_demo_s_odometry_mode_defaults_to_the_seeded_drift() -> None:
         parse_args(["--odometry", "wheels"])
 
 
-def test_kiss_icp_on_the_demo_drive_takes_the_node_s_verified_rows_as_loops(tmp_path: Path) -> None:
+def test_kiss_icp_on_the_demo_drive_takes_the_node_s_verified_rows_as_loops_and_its_ups(tmp_path: Path) -> None:
     args = parse_args(["--frames", "4", "--image-size", "64x32", "--odometry", "kiss-icp", "--out", str(tmp_path)])
     drive = demo_drive(args)  # 4 keyframes 5 m apart: 16 LiDAR frames 1 m apart for KISS-ICP
+    up = (drive.pose(1) @ drive.rig.lidar.base_T_lidar)[:3, :3].T @ np.array([0.0, 0.0, 1.0])
     out = SimpleNamespace(candidates=[[row(drive, 3, 0, verified=True), row(drive, 3, 1, verified=False)],
-                                      [row(drive, 2, 0, verified=True, offset=0.3)]])  # a stamp no frame has
+                                      [row(drive, 2, 0, verified=True, offset=0.3)]],  # a stamp no frame has
+                          ups=[(float(drive.keyframes.stamps[1]), up)])  # the node's ~/up of keyframe 1
     evaluation, skipped = kiss_icp_backend(args, out)
     assert skipped == 1  # the row 0.3 s off every frame
     assert evaluation.stream.loops.tolist() == [[15, 0]]  # keyframe 3 is LiDAR frame 15; the unverified row left out
+    np.testing.assert_allclose(evaluation.stream.ups[1], up)  # the stream's keyframes: every 5th LiDAR frame
+    assert np.isnan(evaluation.stream.ups[[0, 2, 3]]).all()
     summary = evaluation.to_dict()
     assert summary["frames"] == 16 and summary["loops_accepted"] == 1
     assert summary["ate_backend"]["rmse"] <= summary["ate_odometry"]["rmse"] + 0.01
