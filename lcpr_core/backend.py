@@ -34,6 +34,12 @@ gravity), an attitude factor per node (GTSAM's ``AttitudeFactorPose3``: the node
 world's up, std dev ``level_sigma_deg``; a few degrees leaves roads their slopes) removes it. Not
 for hilly drives: a long climb is pulled toward level.
 
+Measured ups (``add_up``, on by default: ``up_sigma_deg``). The detector measures each 360-degree
+keyframe's up from its walls (:mod:`lcpr_core.up`); the same attitude factor then holds the node nearest
+in time to the world's up, which slopes do not move. The world's up in the odometry frame is the mean
+of the ups of the first ``up_warmup_m`` of travel, fixed (or, ``up_world_sigma_deg`` > 0, a graph
+variable every later up refines: steadier under noisy ups, several times dearer per update).
+
 Loops. ``match_T_query`` (LiDAR frames) becomes a body-frame constraint
 (:func:`~lcpr_core.posegraph.lidar_to_body`, :func:`~lcpr_core.loop_report.covariance_lidar_to_body`)
 and is attached to the graph node nearest in time to each stamp, within ``loops.attach_tolerance``
