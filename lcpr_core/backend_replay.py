@@ -431,14 +431,16 @@ class BackendEvaluation:
         return {"odometry": self.odometry_name, "frames": len(self.stream.stamps), "length_m": self.stream.length_m,
                 "keyframes": len(self.stream.keyframes), "loops": len(self.stream.loops),
                 "loops_accepted": int(self.run.accepted.sum()), "loops_refused": len(self.run.refused),
+                "ups_taken": self.run.stats.ups, "ups_refused": len(self.run.up_refused),
                 "ate_odometry": self.before.to_dict(), "ate_backend": self.after.to_dict(),
                 "add_loop_ms_p50": float(np.median(ms)) if len(ms) else None, "config": config_dict(self.config)}
 
     def text(self) -> str:
         ratio = f" ({self.after.rmse / self.before.rmse:.0%} of before)" if self.before.rmse > 0 else ""
+        ups = f", the walls' up of {self.run.stats.ups} keyframes" if self.run.stats.ups else ""
         return (f"{self.odometry_name} odometry ATE {self.before.text()}\n"
                 f"  with the back end ({int(self.run.accepted.sum())} of {len(self.stream.loops)} verified loops "
-                f"accepted) {self.after.text()}{ratio}")
+                f"accepted{ups}) {self.after.text()}{ratio}")
 
     def write_plot(self, path: str | os.PathLike[str], *, title: str) -> None:
         """Top view of the truth, the odometry and the corrected trajectory (frames with a known truth), PNG."""

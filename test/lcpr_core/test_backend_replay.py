@@ -138,6 +138,9 @@ def test_measured_ups_are_recorded_saved_and_replayed_into_the_back_end(tmp_path
     np.testing.assert_array_equal(LoopStream.load(tmp_path / "stream.npz").ups, measured.ups)
     assert replay(measured).stats.ups == len(measured.keyframes)
     assert replay(measured.without_ups()).stats.ups == 0
+    evaluation = evaluate_backend(measured, odometry_name="drifted")
+    assert evaluation.to_dict()["ups_taken"] == len(measured.keyframes)
+    assert f"the walls' up of {len(measured.keyframes)} keyframes" in evaluation.text()
 
     given = [(float(measured.stamps[k]), u) for k, u in zip(measured.keyframes, measured.ups, strict=True)]
     joined, skipped = stream.with_ups([*given, (0.5, np.array([0.0, 0.0, 1.0]))])  # the last names no keyframe
