@@ -92,7 +92,7 @@ import numpy as np
 
 from .atomic import atomic_path
 from .errors import BackendError, PoseGraphError
-from .geometry import interpolate_poses, invert, nearest_rotation, rotation_angle_deg, skew
+from .geometry import interpolate_poses, invert, nearest_rotation, rotation_angle_deg, skew, so3_exp, unit_vector
 from .growable import GrowableArray
 from .loop_report import DEFAULT_LOOP_COVARIANCE, covariance_lidar_to_body
 from .posegraph import (
@@ -364,7 +364,6 @@ class PoseGraphBackend:
         self._isam = self._new_isam()
         self._up_world: np.ndarray | None = None  # the world's up in the odometry frame, once warmed up
         self._up_key = int(self._gtsam.symbol(_UP_CHAR, 0))  # the world's up as a variable (up_world_sigma_deg)
-
         self._ups: list[tuple[float, int, np.ndarray]] = []  # (stamp, node, up in that node's base frame)
 
     # -- inputs ------------------------------------------------------------------------------
@@ -456,31 +455,28 @@ class PoseGraphBackend:
         non-zero or a stamp outside the odometry.
         """
         t = self._stamp(stamp, "up stamp")
-        vec = np.asarray(up, np.float64) if isinstance(up, (np.ndarray, list, tuple)) else np.full(3, np.nan)
-        norm = float(np.linalg.norm(vec)) if vec.shape == (3,) and np.isfinite(vec).all() else 0.0
-        if norm < 1e-9:
+        vec = unit_vector(up)
+        if vec is None:
             self._refuse(UP_VECTOR, f"up at stamp {t!r} is {_show(up)}; expected a finite non-zero 3-vector")
         if self.config.up_sigma_deg <= 0:
             return False
         node, odom_t = self._attach(t, "up stamp", tolerance=math.inf)  # a tilt carried a few s drifts little
-        body_t = self.config.base_T_lidar[:3, :3] @ (vec / norm)  # base frame at t
+        body_t = self.config.base_T_lidar[:3, :3] @ vec  # base frame at t
         body = self._node_odom(node)[:3, :3].T @ odom_t[:3, :3] @ body_t  # the node's base frame
         self._ups.append((t, node, body))
-        if self._up_world is None:
+        world_up, warm_up_ends = self._up_world, self._up_world is None
+        if world_up is None:
             warmup = self.config.up_warmup_m
             if self._travel[node] <= warmup:
                 return True  # kept for the world's up; its factor comes when the warm-up ends
             warm = [(n, b) for _, n, b in self._ups if self._travel[n] <= warmup] or [(node, body)]
             world = sum(self._node_odom(n)[:3, :3] @ b for n, b in warm)
-            self._up_world = world / np.linalg.norm(world)
-            taken = self._ups
-        else:
-            taken = self._ups[-1:]
+            world_up = self._up_world = world / np.linalg.norm(world)
         graph, values = self._gtsam.NonlinearFactorGraph(), self._gtsam.Values()
-        if taken is self._ups:
-            self._add_world_up(graph, values, self._up_world)
-        for _, n, b in taken:
-            self._add_up_factor(graph, n, b, self._up_world)
+        if warm_up_ends:  # the variable (up_world_sigma_deg > 0) and every up kept so far
+            self._add_world_up(graph, values, world_up)
+        for _, n, b in self._ups if warm_up_ends else self._ups[-1:]:
+            self._add_up_factor(graph, n, b, world_up)
         self._update(graph, values)
         self._refresh()
         return True
@@ -572,8 +568,9 @@ class PoseGraphBackend:
         # per tangent component (Pose3: rotation, then translation) of every key: our keys are plain integers,
         # whose Symbol character is '\0'
         limits = gt.ISAM2ThresholdMap()
-        limits.insert(("\0", np.array([cfg.relinearize_threshold] * 3 + [cfg.relinearize_translation] * 3)))
-        limits.insert((_UP_CHAR, np.array([cfg.relinearize_threshold] * 3 + [cfg.relinearize_translation] * 3)))
+        threshold = np.array([cfg.relinearize_threshold] * 3 + [cfg.relinearize_translation] * 3)
+        for char in ("\0", _UP_CHAR):  # the nodes, and the world's up variable
+            limits.insert((char, threshold))
         params.setRelinearizeThreshold(limits)
         params.setOptimizationParams(gt.ISAM2GaussNewtonParams(float(cfg.wildfire_threshold)))
         params.relinearizeSkip = 1
@@ -1005,13 +1002,11 @@ def _rotation_angle(r: np.ndarray) -> float:
 
 def _rotation_to(up: np.ndarray) -> np.ndarray:
     """The smallest rotation taking the z axis to the unit vector ``up``."""
-    z = np.array([0.0, 0.0, 1.0])
-    axis = np.cross(z, up)
-    s, c = float(np.linalg.norm(axis)), float(z @ up)
+    axis = np.cross([0.0, 0.0, 1.0], up)
+    s, c = float(np.linalg.norm(axis)), float(up[2])
     if s < 1e-12:
         return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
-    k = skew(axis / s)
-    return np.eye(3) + s * k + (1.0 - c) * (k @ k)
+    return so3_exp(axis / s * math.atan2(s, c))
 
 
 def _adjoint(pose: np.ndarray) -> np.ndarray:

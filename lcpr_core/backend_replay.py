@@ -79,9 +79,6 @@ class LoopStream:
         if self.ups.shape != (len(self.keyframes), 3):
             raise InvalidValueError(f"LoopStream ups {self.ups.shape} for {len(self.keyframes)} keyframes; "
                                     "expected (K, 3)")
-        self._check()
-
-    def _check(self) -> None:
         n = len(self.stamps)
         if self.truth.shape != (n, 4, 4) or self.odometry.shape != (n, 4, 4):
             raise InvalidValueError(f"LoopStream of {n} stamps with truth {self.truth.shape} and odometry "
@@ -120,12 +117,11 @@ class LoopStream:
         node's output)."""
         pairs, poses, covs, skipped = [], [], [], 0
         for q, m, rel, cov in loops:
-            rows = [int(np.argmin(np.abs(self.stamps - float(t)))) if len(self.stamps) else -1 for t in (q, m)]
-            if min(rows) < 0 or any(abs(self.stamps[r] - float(t)) > tolerance for r, t in zip(rows, (q, m),
-                                                                                                  strict=True)):
+            query, match = _row_at(self.stamps, q, tolerance), _row_at(self.stamps, m, tolerance)
+            if query is None or match is None:
                 skipped += 1
                 continue
-            pairs.append(rows)
+            pairs.append([query, match])
             poses.append(np.asarray(rel, np.float64))
             covs.append(np.full((6, 6), np.nan) if cov is None else np.asarray(cov, np.float64))
         out = dataclasses.replace(
@@ -140,8 +136,8 @@ class LoopStream:
         out, skipped = self.ups.copy(), 0
         key_stamps = self.stamps[self.keyframes]
         for t, up in ups:
-            k = int(np.argmin(np.abs(key_stamps - float(t)))) if len(key_stamps) else -1
-            if k < 0 or abs(key_stamps[k] - float(t)) > tolerance:
+            k = _row_at(key_stamps, t, tolerance)
+            if k is None:
                 skipped += 1
                 continue
             out[k] = np.asarray(up, np.float64).reshape(3)
@@ -158,6 +154,14 @@ class LoopStream:
         with np.load(path, allow_pickle=False) as z:
             return cls(**{k: z[k] for k in _ARRAYS}, seconds=json.loads(str(z["seconds"])),
                        ups=z["ups"] if "ups" in z.files else np.zeros((0, 3)))
+
+
+def _row_at(stamps: np.ndarray, t: float, tolerance: float) -> int | None:
+    """The row of ``stamps`` (increasing) nearest ``t`` when within ``tolerance`` s, else None."""
+    if not len(stamps):
+        return None
+    row = int(np.argmin(np.abs(stamps - float(t))))
+    return row if abs(stamps[row] - float(t)) <= tolerance else None
 
 
 class StreamRecorder:

@@ -64,6 +64,18 @@ def skew(w: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
 
 
+def unit_vector(value: object) -> np.ndarray | None:
+    """``value`` as a (3,) unit vector, or None when it is not a finite non-zero 3-vector (the caller says why)."""
+    try:
+        vec = np.asarray(value, np.float64)
+    except (TypeError, ValueError):
+        return None
+    if vec.shape != (3,) or not np.isfinite(vec).all():
+        return None
+    norm = float(np.linalg.norm(vec))
+    return vec / norm if norm >= 1e-9 else None
+
+
 def so3_exp(w: np.ndarray) -> np.ndarray:
     """Rotation matrix of the rotation vector ``w`` (3,) (Rodrigues)."""
     theta = float(np.linalg.norm(w))

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import InvalidValueError
+from .geometry import unit_vector
 from .verification.submap import azimuth_coverage_deg
 
 __all__ = ["UpConfig", "UpEstimate", "estimate_up"]
@@ -108,11 +109,9 @@ def estimate_up(xyz: np.ndarray, *, prior_up: np.ndarray | None = None,
         raise InvalidValueError(f"xyz of shape {pts.shape}; expected N x 3 (or more columns)")
     pts = pts[:, :3]
     pts = pts[np.isfinite(pts).all(axis=1)]
-    up0 = np.array([0.0, 0.0, 1.0]) if prior_up is None else np.asarray(prior_up, dtype=np.float64).reshape(-1)
-    norm = float(np.linalg.norm(up0)) if up0.shape == (3,) and np.isfinite(up0).all() else 0.0
-    if norm < 1e-9:
+    up0 = np.array([0.0, 0.0, 1.0]) if prior_up is None else unit_vector(prior_up)
+    if up0 is None:
         raise InvalidValueError(f"prior_up={prior_up!r}; expected a finite non-zero 3-vector")
-    up0 = up0 / norm
     if cfg.min_fov_deg > 0 and azimuth_coverage_deg(pts) < cfg.min_fov_deg:
         return None
     normals = _wall_normals(pts, cfg)

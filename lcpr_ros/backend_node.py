@@ -23,7 +23,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from builtin_interfaces.msg import Time
@@ -79,6 +79,15 @@ class _Odom:
 class _Up:
     stamp: float
     up: np.ndarray  # (3,) in the LiDAR frame
+    expired: ClassVar[str] = UP_EXPIRED  # the drop reason when its odometry never comes
+
+    @property
+    def newest(self) -> float:
+        return self.stamp
+
+    @property
+    def what(self) -> str:
+        return f"up {self.stamp!r}"
 
 
 @dataclass(frozen=True)
@@ -87,6 +96,15 @@ class _Loop:
     match_stamp: float
     match_T_query: np.ndarray
     covariance: np.ndarray | None
+    expired: ClassVar[str] = LOOP_EXPIRED  # the drop reason when its odometry never comes
+
+    @property
+    def newest(self) -> float:
+        return max(self.query_stamp, self.match_stamp)
+
+    @property
+    def what(self) -> str:
+        return f"loop {self.query_stamp!r} -> {self.match_stamp!r}"
 
 
 class BackendNode(NodeStats, Node):
@@ -224,20 +242,15 @@ class BackendNode(NodeStats, Node):
 
     def _add_stamped(self, item: _Loop | _Up) -> None:
         """Add a loop or an up, or keep it until the odometry reaches its stamps (``pending_s`` ahead at most)."""
-        if isinstance(item, _Up):
-            newest, what = item.stamp, f"up {item.stamp!r}"
-        else:
-            newest, what = max(item.query_stamp, item.match_stamp), f"loop {item.query_stamp!r} -> {item.match_stamp!r}"
-        ahead = newest - self._newest_odom
+        ahead = item.newest - self._newest_odom
         if ahead > self.settings.loops.stamp_tolerance:
             if ahead <= self.settings.pending_s or self._newest_odom == -np.inf:
                 if len(self._pending) < MAX_WAITING:
                     self._pending.append(item)
                     return
-            expired = UP_EXPIRED if isinstance(item, _Up) else LOOP_EXPIRED
-            self.drops.add(expired)
-            self.warnings(expired, f"{what} is {ahead:.3f} s ahead of the newest odometry "
-                                        f"(pending_s = {self.settings.pending_s} s)")
+            self.drops.add(item.expired)
+            self.warnings(item.expired, f"{item.what} is {ahead:.3f} s ahead of the newest odometry "
+                                             f"(pending_s = {self.settings.pending_s} s)")
             return
         try:
             if isinstance(item, _Up):

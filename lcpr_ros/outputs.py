@@ -24,6 +24,7 @@ from std_msgs.msg import Float64MultiArray
 from lcpr_core.lcpr.detector import Candidate, Result
 from msg_tools.build import build_message
 from msg_tools.geometry import quaternion_to_matrix
+from msg_tools.types import sec_to_stamp
 from ros_common.tables import COVARIANCE_COLUMNS, POSE_COLUMNS, parse_candidates, pose_covariance_cells, table_msg
 
 __all__ = ["CANDIDATE_COLUMNS", "candidates_msg", "loop_closure_msg", "parse_candidates", "row_covariance", "row_pose",
@@ -52,10 +53,10 @@ def up_msg(result: Result, frame_id: str) -> Vector3Stamped | None:
     """``~/up``: the keyframe's up direction from its walls (unit vector in the cloud's frame, at its stamp)."""
     if result.up is None:
         return None
-    sec, nsec = divmod(round(float(result.stamp) * 1e9), 1_000_000_000)
+    stamp = sec_to_stamp(float(result.stamp))
     x, y, z = (float(v) for v in result.up)
     return build_message("geometry_msgs/msg/Vector3Stamped", {
-        "header": {"stamp": {"sec": sec, "nanosec": nsec}, "frame_id": frame_id},
+        "header": {"stamp": {"sec": stamp.sec, "nanosec": stamp.nanosec}, "frame_id": frame_id},
         "vector": {"x": x, "y": y, "z": z}}, msg_type=Vector3Stamped)
 
 

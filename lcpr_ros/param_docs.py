@@ -88,6 +88,7 @@ DOCS: dict[str, ParamDoc] = {
                               "facing one way leave a tilt unseen", 0.0, 1.0, dynamic=True),
     "up.min_fov_deg": ParamDoc("deg of azimuth a keyframe's cloud must cover for an up (a narrow field of view sees "
                                "the walls of one side only); 0 = any", 0.0, 360.0, dynamic=True),
+
     # ---- model (read-only: the network is built once)
     "model.weights": ParamDoc("LCPR weights: bundled (the trained weights shipped, synthetic cities), a checkpoint "
                               "file (the authors' released one for a real vehicle), or seeded (random, testing only)"),

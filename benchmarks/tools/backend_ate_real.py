@@ -192,10 +192,12 @@ def main(argv: list[str] | None = None) -> int:
               f"({after.rmse / before.rmse:.0%} of before; aligned {after.aligned / before.aligned:.0%})")
         ups = int(np.isfinite(stream.ups).all(axis=1).sum())
         loops_only = None
-        if config.up_sigma_deg > 0:
+        if config.up_sigma_deg > 0 and ups:  # with no up measured the run above is the loops-only one
             loops_only = trajectory_error(replay(stream.without_ups(), config=config).trajectory, stream.truth)
             print(f"  the walls' up measured at {ups} of {len(stream.keyframes)} keyframes; without it (loops "
                   f"only): ATE {loops_only.text()} ({loops_only.rmse / before.rmse:.0%} of before)")
+        elif config.up_sigma_deg > 0:
+            print(f"  the walls' up measured at none of {len(stream.keyframes)} keyframes: loops only")
         print(f"  loops: {int(clean.accepted.sum())} accepted ({int((clean.accepted & wrong).sum())} wrong), "
               f"{int((~clean.accepted).sum()) - len(clean.refused)} rejected ({int((~clean.accepted & wrong).sum())} "
               f"wrong), {len(clean.refused)} refused"
