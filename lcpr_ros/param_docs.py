@@ -35,6 +35,10 @@ DOCS: dict[str, ParamDoc] = {
     "verify.registration": ParamDoc("small_gicp registration", choices=("GICP", "PLANE_ICP", "VGICP"),
                                     dynamic=True),
     "verify.num_threads": ParamDoc("registration threads", 1, 64, dynamic=True),
+    "verify.max_contradiction": ParamDoc("share (0..1) of either cloud's points that may lie where the other "
+                                         "sensor's beams passed through (its free space) before the pair is refused "
+                                         "as contradicted, a look-alike place; 1 = no free-space test",
+                                         0.0, 1.0, dynamic=True),
     "verify.ambiguity_constraint": ParamDoc("translation constraint (0..1/3) under which a pair about to be "
                                             "accepted is also registered from its other starts (0 = never)",
                                             0.0, 1.0, dynamic=True),

@@ -32,11 +32,13 @@ from ..geometry import rotation_angle_deg, transform_points
 from ..points import finite_xyz
 from .clouds import compact_cloud
 from .config import VerifierConfig
+from .free_space import FreeSpace
 from .initial import BevMatcher, Hypothesis, polar_context, yaw_candidates
 
 ACCEPTED = "accepted"
 REJECT_REASONS: tuple[str, ...] = (
-    "too few points", "low overlap", "high residual", "large correction", "degenerate", "ambiguous", "failed",
+    "too few points", "low overlap", "high residual", "large correction", "degenerate", "contradicted", "ambiguous",
+    "failed",
 )
 _ROS_ORDER = [3, 4, 5, 0, 1, 2]  # small_gicp's (rotation, translation) tangent -> (x, y, z, roll, pitch, yaw)
 _NEIGHBOURS = 10
@@ -59,6 +61,7 @@ class PreparedCloud:
     fine: small_gicp.PointCloud | None = None  # about verify.fine_points points (or ``cloud``), for the fine stage
     fine_tree: small_gicp.KdTree | None = None
     _bev: BevMatcher | None = field(default=None, repr=False)
+    _free: FreeSpace | None = field(default=None, repr=False)
     # its BEV spectra as a query, by (matcher key, yaw): its candidates' yaw guesses often repeat
     _bev_query: dict[tuple[tuple[float, float, int], float], tuple[np.ndarray, float]] = field(
         default_factory=dict, repr=False)
@@ -71,6 +74,12 @@ class PreparedCloud:
             self._bev = BevMatcher(self.bev_xyz(config), cell=config.bev_cell, extent=config.bev_extent,
                                    max_offset=config.bev_extent / 2.0)
         return self._bev
+
+    def free_space(self) -> FreeSpace:
+        """What this cloud says is empty, seen from its origin (the sensor)."""
+        if self._free is None:
+            self._free = FreeSpace(self.xyz)
+        return self._free
 
     def bev_xyz(self, config: VerifierConfig) -> np.ndarray:
         """The points its bird's-eye views are made of: every k-th, about ``bev_points`` (all when 0)."""
@@ -145,6 +154,8 @@ class Verification:
     translation_constraint: float = 0.0  # its translation part alone, 0 .. 1/3 (gates the "ambiguous" test)
     # fitness of the best other pose (> ambiguity_distance away) when the ambiguity test ran, else nan
     alternative_fitness: float = math.nan
+    # the larger share of either cloud's points lying in the other's free space at the pose, when the test ran
+    contradiction: float = math.nan
     initial: np.ndarray = field(default_factory=lambda: np.eye(4))  # the initial guess the result came from
     coarse_fitness: float = 0.0  # overlap estimated at the best coarse pose (the early-reject test)
     seconds: float = 0.0
@@ -251,12 +262,33 @@ class GeometricVerifier:
                                 coarse_fitness=early, seconds=time.perf_counter() - tic)
         best = self._fine(query, match, coarse[0][1], coarse[0][2])
         verdict = self._judge(best)
+        if verdict.accepted and cfg.max_contradiction < 1.0:
+            contradiction = self.contradiction(query, match, best.T)
+            verdict = replace(verdict, contradiction=contradiction)
+            if contradiction > cfg.max_contradiction:
+                verdict = replace(verdict, accepted=False, reason="contradicted")
         if verdict.accepted and best.translation_constraint < cfg.ambiguity_constraint:
             other = self._alternative(query, match, coarse, best.T)
             verdict = replace(verdict, alternative_fitness=other)
             if other >= cfg.ambiguity_ratio * best.fitness:
                 verdict = replace(verdict, accepted=False, reason="ambiguous")
         return replace(verdict, coarse_fitness=early, seconds=time.perf_counter() - tic)
+
+    def contradiction(self, query: PreparedCloud, match: PreparedCloud, match_T_query: np.ndarray) -> float:
+        """The larger of the two clouds' shares of points that lie in the other's free space at the pose.
+
+        Each share is taken over an evenly spaced sample of about ``overlap_points`` points, among those
+        falling in directions the other sensor saw; a point within ``inlier_distance`` of the other's points
+        lies on a surface both saw and never counts against the pair (see :mod:`.free_space`).
+        """
+        cfg = self.config
+        shares = []
+        for seen_by, cloud, T in ((match, query, match_T_query), (query, match, np.linalg.inv(match_T_query))):
+            points = transform_points(cloud.xyz[::_stride(len(cloud), cfg.overlap_points)], T)
+            _, near = _near(points, seen_by, cfg)
+            bad, seen = seen_by.free_space().contradicting(points, excused=near)
+            shares.append(bad / seen if seen else 0.0)
+        return max(shares)
 
     def _alternative(self, query: PreparedCloud, match: PreparedCloud,
                      coarse: list[tuple[float, np.ndarray, np.ndarray]], T: np.ndarray) -> float:

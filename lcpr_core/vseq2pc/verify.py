@@ -56,6 +56,7 @@ DEPTH_VERIFIER = VerifierConfig(
     max_correction_deg=6.0, early_reject=1.0, coarse_accept=0.35, min_points=150, fine_points=1024,
     max_iterations=6,
     ambiguity_constraint=0.0,  # the LiDAR pairs' ambiguity check is not measured on depth pseudo-clouds: off
+    max_contradiction=1.0,  # nor is the free-space test (a camera's depth is no LiDAR's free space): off
 )
 NO_CONSENSUS = "no consensus"  # fewer than verify.min_support registered candidates put the camera in one place
 YAW_DISAGREES = "yaw disagrees"  # the registered yaw is more than verify.max_yaw_deg from the matched slice's
