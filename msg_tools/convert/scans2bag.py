@@ -118,7 +118,11 @@ def _poses(folder: Path, scans: Sequence[Path], poses: Path | None, report: Scan
         if poses is None:
             return None
     elif not poses.is_file():
-        raise DatasetError(f"--poses {poses} does not exist")
+        beside = folder / poses  # a bare name (--poses odom_poses.txt) names a file of the folder
+        if poses.is_absolute() or not beside.is_file():
+            raise DatasetError(f"--poses {poses} does not exist (nor {beside}); accepted: a pose file's path, or "
+                               f"the name of one in {folder}")
+        poses = beside
     all_poses = read_kitti_poses(poses)
     world_T = all_poses[line_index(scans, len(all_poses), str(poses))]
     calib = poses.parent / "calib.txt"
@@ -167,8 +171,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="msg_tools_scans2bag", description=DESCRIPTION)
     parser.add_argument("folder", type=Path, help="folder with Scans/*.pcd, *.pcd, velodyne/*.bin or *.bin")
     parser.add_argument("--poses", type=Path, default=None,
-                        help=f"pose file, 3 x 4 row-major per line (default: the first of {', '.join(POSE_FILES)} "
-                             "in the folder; none: no odometry)")
+                        help=f"pose file, 3 x 4 row-major per line; a name alone that is not a file here names the "
+                             f"folder's (default: the first of {', '.join(POSE_FILES)} in the folder; none: no "
+                             "odometry)")
     parser.add_argument("--skip-bad", action="store_true", help="leave unreadable or truncated scans out, named")
     add_output_options(parser)
     return parser

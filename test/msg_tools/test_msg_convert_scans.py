@@ -86,3 +86,17 @@ def test_without_a_pose_file_the_bag_has_points_only_and_times_default_to_10_hz(
     got = frames(tmp_path / "bag")
     assert [f.pose for f in got] == [None] * 6
     assert np.allclose(np.diff([f.stamp for f in got]), 0.1)
+
+
+def test_a_pose_file_named_without_a_path_is_the_folders_own(walk: Path, tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.chdir(tmp_path)  # no odom_poses.txt here: the name means the folder's
+    report = convert_scans(walk, tmp_path / "bag", poses=Path("odom_poses.txt"))
+    assert report.poses == str(walk / "odom_poses.txt")
+    got = frames(tmp_path / "bag")
+    assert np.allclose(got[2].pose, read_kitti_poses(walk / "odom_poses.txt")[2], atol=1e-6)
+
+
+def test_a_pose_file_found_nowhere_names_both_places_it_looked(walk: Path, tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(DatasetError, match=r"--poses missing\.txt does not exist \(nor .*walk/missing\.txt\)"):
+        convert_scans(walk, tmp_path / "bag", poses=Path("missing.txt"))
