@@ -125,14 +125,14 @@ class VerifierConfig:
     max_correction_m: float = 1.0  # fine vs coarse pose; validation true pairs moved <= 0.7 m, 1.7 deg
     max_correction_deg: float = 5.0
     min_constraint: float = 0.02  # 0..1/3 point-to-plane observability (verify_tune.py); a plane, a sphere ~0
+    # free space (docs/verification.md; chosen on the validation city seed 3, the KITTI scans and the Livox validation
+    # halves: their true pairs reach 0.016, their wrong poses 0.096 at least): a pair whose points lie in the other
+    # scan's free space beyond this share, on either side, is refused as "contradicted"; 1 = never
+    max_contradiction: float = 0.05
     # ambiguity (docs/verification.md; chosen on the validation city seed 3 and the Livox validation halves): a pair
     # about to be accepted whose translation part of the constraint is under ambiguity_constraint (0: never) is
     # registered from its other starts too; another pose more than ambiguity_distance m away reaching
     # ambiguity_ratio x its fitness refuses it ("ambiguous": the clouds slide along a street or a corridor)
-    # free space (docs/verification.md; chosen on the validation city seed 3, the KITTI scans and the Livox validation
-    # halves: their true pairs reach 0.015, their wrong poses 0.095 at least): a pair whose points lie in the other
-    # scan's free space beyond this share, on either side, is refused as "contradicted"; 1 = never
-    max_contradiction: float = 0.05
     ambiguity_constraint: float = 0.06
     ambiguity_ratio: float = 0.6
     ambiguity_distance: float = 5.0
