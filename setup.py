@@ -13,8 +13,11 @@ setup(
     python_requires=">=3.10",
     packages=find_packages(
         include=["lcpr_common*", "lcpr_core*", "lcpr_offline*", "lcpr_ros*", "msg_tools*", "ros_common*",
-                 "vseq2pc_ros*", "citysim*"]
+                 "vseq2pc_ros*", "backend_ros*", "citysim*"]
     ),
+    # PEP 561: the packages ship their inline type hints to users' type checkers.
+    package_data={name: ["py.typed"] for name in ("lcpr_common", "lcpr_core", "lcpr_offline", "lcpr_ros", "msg_tools",
+                                                  "ros_common", "vseq2pc_ros", "backend_ros", "citysim")},
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
@@ -76,18 +79,18 @@ setup(
     entry_points={
         "console_scripts": [
             "lcpr_demo = lcpr_ros.demo:main",
-            "lcpr_keyframe_demo = lcpr_core.lcpr.keyframe_demo:main",
+            "lcpr_keyframe_demo = lcpr_offline.lcpr_keyframe_demo:main",
             "lcpr_quantize = lcpr_offline.lcpr_quantize:main",
             "lcpr_node = lcpr_ros.node:main",
-            "lcpr_backend = lcpr_ros.backend_node:main",
-            "lcpr_kiss_icp = lcpr_ros.kiss_icp_node:main",
+            "lcpr_backend = backend_ros.node:main",
+            "lcpr_kiss_icp = backend_ros.kiss_icp_node:main",
             "lcpr_replay = lcpr_ros.replay:main",
             "lcpr_eval = lcpr_ros.evaluate:main",
             "vseq2pc_node = vseq2pc_ros.node:main",
             "lcpr_train = lcpr_offline.lcpr_train:main",
             "vseq2pc_cache = lcpr_offline.vseq2pc_cache:main",
-            "vseq2pc_train = lcpr_core.vseq2pc.training.cli:main",
-            "vseq2pc_eval = lcpr_core.vseq2pc.evaluate:main",
+            "vseq2pc_train = lcpr_offline.vseq2pc_train:main",
+            "vseq2pc_eval = lcpr_offline.vseq2pc_evaluate:main",
             "msg_tools_nuscenes2bag = msg_tools.convert.nuscenes:main",
             "msg_tools_kitti2bag = msg_tools.convert.kitti:main",
             "msg_tools_scans2bag = msg_tools.convert.scans2bag:main",

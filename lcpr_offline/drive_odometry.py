@@ -7,8 +7,8 @@ A drive rendered for the detector has keyframes 5 m apart, too far for KISS-ICP'
 guess (it loses the 32-beam rig at 2.5 m steps), so the odometry runs on LiDAR frames rendered every
 metre along the same path in the same world: keyframe ``k`` of a drive ``s`` m apart is frame
 ``k * s / spacing`` of the dense one, at the same stamp. KISS-ICP starts at the true first pose; the
-stream (:class:`lcpr_core.backend_replay.LoopStream`) holds the truth, the odometry and, with a
-detector, its verified loops, for :func:`lcpr_core.backend_replay.replay`.
+stream (:class:`lcpr_core.backend.replay.LoopStream`) holds the truth, the odometry and, with a
+detector, its verified loops, for :func:`lcpr_core.backend.replay.replay`.
 """
 from __future__ import annotations
 
@@ -22,10 +22,10 @@ from citysim import SyntheticDrive
 from citysim.hashing import rng_for
 from citysim.lidar import render_lidar
 from lcpr_common.progress import progress_iter
-from lcpr_core.backend_replay import LoopStream, StreamRecorder
+from lcpr_core.backend.lidar_odometry import KissConfig, KissOdometry
+from lcpr_core.backend.replay import LoopStream, StreamRecorder
+from lcpr_core.detector import Frame, LoopDetector
 from lcpr_core.errors import InvalidValueError
-from lcpr_core.lcpr.detector import Frame, LoopDetector
-from lcpr_core.lidar_odometry import KissConfig, KissOdometry
 
 __all__ = ["dense_drive", "lidar_points", "record_drive"]
 
@@ -56,7 +56,7 @@ def record_drive(drive: SyntheticDrive, *, every: int = 5, detector: LoopDetecto
     """KISS-ICP over every frame of ``drive`` (and ``detector`` on every ``every``-th, with cameras); the stream.
 
     Without a detector the stream has no loops and its keyframes are every ``every``-th frame; add the
-    loops found elsewhere with :meth:`~lcpr_core.backend_replay.LoopStream.with_loops`.
+    loops found elsewhere with :meth:`~lcpr_core.backend.replay.LoopStream.with_loops`.
     """
     if not (isinstance(every, int) and every >= 1):
         raise InvalidValueError(f"every={every!r}; expected an integer >= 1")

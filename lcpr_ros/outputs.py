@@ -14,18 +14,21 @@ candidate was not registered.
 """
 from __future__ import annotations
 
-import math
-from collections.abc import Mapping
-
-import numpy as np
 from geometry_msgs.msg import Vector3Stamped
 from std_msgs.msg import Float64MultiArray
 
-from lcpr_core.lcpr.detector import Candidate, Result
+from lcpr_core.detector import Candidate, Result
 from msg_tools.build import build_message
-from msg_tools.geometry import quaternion_to_matrix
 from msg_tools.types import sec_to_stamp
-from ros_common.tables import COVARIANCE_COLUMNS, POSE_COLUMNS, parse_candidates, pose_covariance_cells, table_msg
+from ros_common.tables import (
+    COVARIANCE_COLUMNS,
+    POSE_COLUMNS,
+    parse_candidates,
+    pose_covariance_cells,
+    row_covariance,
+    row_pose,
+    table_msg,
+)
 
 __all__ = ["CANDIDATE_COLUMNS", "candidates_msg", "loop_closure_msg", "parse_candidates", "row_covariance", "row_pose",
            "up_msg"]
@@ -64,20 +67,3 @@ def candidates_msg(result: Result) -> Float64MultiArray | None:
     if not result.candidates:
         return None
     return table_msg([_row(c) for c in result.candidates], CANDIDATE_COLUMNS)
-
-
-def row_pose(row: Mapping[str, float]) -> np.ndarray | None:
-    """match_T_query (4 x 4) of a parsed ``~/candidates`` row; None when the candidate was not registered."""
-    values = [row.get(name, math.nan) for name in POSE_COLUMNS]
-    if not np.isfinite(values).all():
-        return None
-    T = np.eye(4)
-    T[:3, :3] = quaternion_to_matrix(np.array(values[3:]))
-    T[:3, 3] = values[:3]
-    return T
-
-
-def row_covariance(row: Mapping[str, float]) -> np.ndarray | None:
-    """The 6 x 6 covariance (x, y, z, roll, pitch, yaw) of a parsed ``~/candidates`` row; None when absent."""
-    values = [row.get(name, math.nan) for name in COVARIANCE_COLUMNS]
-    return np.array(values).reshape(6, 6) if np.isfinite(values).all() else None

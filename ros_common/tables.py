@@ -4,13 +4,13 @@ names, cols, cols), so a reader finds every column by name whichever node wrote 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, MultiArrayLayout
 
-from msg_tools.geometry import matrix_to_quaternion
+from msg_tools.geometry import matrix_to_quaternion, quaternion_to_matrix
 
 #: match_T_query as translation + quaternion, and its 6 x 6 covariance row-major: the same names in both nodes
 POSE_COLUMNS: tuple[str, ...] = ("tx", "ty", "tz", "qx", "qy", "qz", "qw")
@@ -52,3 +52,20 @@ def parse_candidates(msg: Any) -> list[dict[str, float]]:
         raise ValueError(f"layout {rows} x {cols} with columns {names} does not fit {len(msg.data)} values")
     data = list(msg.data)[msg.layout.data_offset:]
     return [dict(zip(names, data[r * cols:(r + 1) * cols], strict=True)) for r in range(rows)]
+
+
+def row_pose(row: Mapping[str, float]) -> np.ndarray | None:
+    """match_T_query (4 x 4) of a parsed ``~/candidates`` row; None when the candidate was not registered."""
+    values = [row.get(name, math.nan) for name in POSE_COLUMNS]
+    if not np.isfinite(values).all():
+        return None
+    T = np.eye(4)
+    T[:3, :3] = quaternion_to_matrix(np.array(values[3:]))
+    T[:3, 3] = values[:3]
+    return T
+
+
+def row_covariance(row: Mapping[str, float]) -> np.ndarray | None:
+    """The 6 x 6 covariance (x, y, z, roll, pitch, yaw) of a parsed ``~/candidates`` row; None when absent."""
+    values = [row.get(name, math.nan) for name in COVARIANCE_COLUMNS]
+    return np.array(values).reshape(6, 6) if np.isfinite(values).all() else None

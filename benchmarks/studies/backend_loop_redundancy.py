@@ -44,7 +44,7 @@ import numpy as np
 
 if TYPE_CHECKING:
     from lcpr_core.backend import BackendConfig
-    from lcpr_core.backend_replay import LoopStream
+    from lcpr_core.backend.replay import LoopStream
 
 SPACINGS_M = (0.0, 3.0, 5.0, 7.5, 10.0, 20.0)
 BIN_M = 10.0  # stretches: bins of distance travelled
@@ -128,7 +128,7 @@ def config(*, spacing: float, scale: float, level: float = 0.0, gravity: float =
 
 
 def ate(stream: LoopStream, cfg: BackendConfig, *, inject: int = 0) -> dict[str, Any]:
-    from lcpr_core.backend_replay import replay, trajectory_error
+    from lcpr_core.backend.replay import replay, trajectory_error
 
     run = replay(stream, inject=inject, seed=0, config=cfg)
     err = trajectory_error(run.trajectory, stream.truth)
@@ -190,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
     from lcpr_common.progress import progress_bar
     from lcpr_core.atomic import write_bytes_atomic
     from lcpr_core.backend import BackendConfig, OdometryNoise
-    from lcpr_core.backend_replay import LoopStream, trajectory_error
+    from lcpr_core.backend.replay import LoopStream, trajectory_error
     from lcpr_core.timing import cpu_model
 
     args.out.mkdir(parents=True, exist_ok=True)

@@ -34,7 +34,7 @@ import numpy as np
 
 if TYPE_CHECKING:
     from lcpr_core.backend import BackendConfig
-    from lcpr_core.backend_replay import LoopStream
+    from lcpr_core.backend.replay import LoopStream
 
 NOISE_DEG = (0.0, 0.5, 1.0, 2.0)
 WARMUPS_M = (10.0, 20.0, 30.0, 60.0, 100.0)
@@ -58,7 +58,7 @@ def noisy(ups: np.ndarray, noise_deg: float, rng: np.random.Generator) -> np.nda
 
 def ratios(stream: LoopStream, config: BackendConfig, noise_deg: float, draws: int) -> list[float]:
     """ATE after / before of each draw of ``noise_deg`` up noise."""
-    from lcpr_core.backend_replay import replay, trajectory_error
+    from lcpr_core.backend.replay import replay, trajectory_error
 
     before = trajectory_error(stream.odometry, stream.truth).rmse
     out = []
@@ -85,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     from lcpr_common.progress import progress_iter
     from lcpr_core.atomic import write_bytes_atomic
     from lcpr_core.backend import BackendConfig
-    from lcpr_core.backend_replay import LoopStream
+    from lcpr_core.backend.replay import LoopStream
 
     def stream_of(seed: int) -> LoopStream:
         path = args.streams / f"stream_seed{seed}_1000f_1m_every5.npz"

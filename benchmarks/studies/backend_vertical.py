@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:
-    from lcpr_core.backend_replay import LoopStream
+    from lcpr_core.backend.replay import LoopStream
 
 SIGMAS_DEG = (0.5, 1.0, 2.0, 3.0, 5.0, 10.0)
 ORACLE_COV = np.diag([0.02**2] * 3 + [math.radians(0.2) ** 2] * 3)  # the verifier's smallest
@@ -170,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from lcpr_core.atomic import write_bytes_atomic
     from lcpr_core.backend import BackendConfig, PoseGraphBackend
-    from lcpr_core.backend_replay import LoopStream, replay, trajectory_error
+    from lcpr_core.backend.replay import LoopStream, replay, trajectory_error
     from lcpr_core.timing import cpu_model
 
     args.out.mkdir(parents=True, exist_ok=True)

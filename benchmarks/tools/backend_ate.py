@@ -7,12 +7,12 @@
    bundled weights never saw; seed 9 is the other test city, seed 3 the validation city), its LiDAR
    rendered every ``--spacing`` m (1 m: 10 Hz at 10 m/s; KISS-ICP loses track of this 32-beam rig at
    2.5 m steps);
-2. KISS-ICP (lcpr_core.lidar_odometry, via lcpr_offline.drive_odometry) over those clouds: the odometry,
+2. KISS-ICP (lcpr_core.backend.lidar_odometry, via lcpr_offline.drive_odometry) over those clouds: the odometry,
    with its real registration drift;
 3. the detector (bundled weights, ``BUNDLED_MAX_DISTANCE``, LiDAR verification on) on every ``--every``-th
    frame (5 m apart, cameras rendered at 640 x 360) with the odometry as its poses;
 4. the back end (lcpr_core.backend) fed online, in the order a robot would see them
-   (lcpr_core.backend_replay): each odometry message, and after each keyframe its verified candidates as
+   (lcpr_core.backend.replay): each odometry message, and after each keyframe its verified candidates as
    loops;
 5. ATE RMSE (no alignment, both starting at the true first pose; split into horizontal and vertical, and
    SE(3)-aligned beside) of the odometry and of the corrected trajectory against the ground truth, and a
@@ -46,17 +46,18 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from lcpr_common.cli import tool_main
+
 if TYPE_CHECKING:  # the package (and torch with it) is imported after the arguments are read
-    from lcpr_core.backend_replay import LoopStream
+    from lcpr_core.backend.replay import LoopStream
 
 
 def record(args: argparse.Namespace) -> LoopStream:
     """Render the drive, run KISS-ICP and the detector (lcpr_offline.drive_odometry); what they produced."""
     from citysim import SynthConfig, SyntheticDrive
-    from lcpr_core.detector import DetectorConfig, LoopDetector
+    from lcpr_core.detector import DetectorConfig, LoopDetector, MatchConfig
     from lcpr_core.keyframes import KeyframeConfig
     from lcpr_core.lcpr.config import ModelConfig
-    from lcpr_core.lcpr.detector import MatchConfig
     from lcpr_core.pretrained import BUNDLED_MAX_DISTANCE, default_weights
     from lcpr_offline.drive_odometry import record_drive
 
@@ -72,6 +73,7 @@ def record(args: argparse.Namespace) -> LoopStream:
     return record_drive(drive, every=args.every, detector=detector, threads=args.threads)
 
 
+@tool_main
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--seed", type=int, default=7, help="city and drive seed (7: a test city the weights never saw)")
@@ -91,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from lcpr_core.atomic import write_bytes_atomic
     from lcpr_core.backend import BackendConfig, config_dict
-    from lcpr_core.backend_replay import LoopStream, loop_pairs, replay, trajectory_error
+    from lcpr_core.backend.replay import LoopStream, loop_pairs, replay, trajectory_error
     from lcpr_core.posegraph import plot_trajectories
     from lcpr_core.timing import cpu_model
 

@@ -6,7 +6,7 @@
 For each scan folder of ``../shared/data/livox_hku`` (handheld Livox Avia, about 70 deg field of view):
 
 1. the odometry, with its real drift, started at the first reference pose: ``kiss-icp`` (default) runs
-   KISS-ICP (lcpr_core.lidar_odometry; its default settings, or ``--kiss-max-range`` and
+   KISS-ICP (lcpr_core.backend.lidar_odometry; its default settings, or ``--kiss-max-range`` and
    ``--kiss-min-range``: KISS-ICP's voxels are max_range / 100) over the scans in order; ``fast-lio2``
    reads the folder's ``odom_poses.txt``, the LiDAR-inertial odometry (FAST-LIO2) the sequence was
    recorded with, before its own loop closing: the "LIO without loop closure" a user brings;
@@ -16,7 +16,7 @@ For each scan folder of ``../shared/data/livox_hku`` (handheld Livox Avia, about
 3. the back end (lcpr_core.backend, default configuration: no level prior, a handheld sensor is not a
    ground vehicle; the walls' up of each keyframe, which a 70 deg Livox scan never measures, so
    ``--up-sigma`` changes nothing unless the detector's ``up.min_fov_deg`` does) fed online: each
-   odometry pose, then the keyframe's verified candidates as loops (lcpr_core.backend_replay);
+   odometry pose, then the keyframe's verified candidates as loops (lcpr_core.backend.replay);
 4. ATE RMSE of the odometry and of the corrected trajectory against ``optimized_poses.txt`` (the SLAM
    system's poses after its own loop closing: a reference good to a few cm, not surveyed truth), without
    alignment (both start at the first reference pose) and after a rigid SE(3) fit; a top view per set;
@@ -44,9 +44,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from lcpr_common.cli import tool_main
+
 if TYPE_CHECKING:  # the package (and torch with it) is imported after the arguments are read
-    from lcpr_core.backend_replay import LoopStream
-    from lcpr_core.lidar_odometry import KissConfig
+    from lcpr_core.backend.lidar_odometry import KissConfig
+    from lcpr_core.backend.replay import LoopStream
 
 SETS = ("walk_loop", "campus")
 ODOMETRY = ("kiss-icp", "fast-lio2")
@@ -68,10 +70,10 @@ def record(folder: Path, *, threads: int, kiss: KissConfig | None) -> LoopStream
     """The odometry (KISS-ICP, or the folder's ``odom_poses.txt`` when ``kiss`` is None) and the LiDAR-only
     detector over one scan folder; the stream of what they produced."""
     from lcpr_common.progress import progress_iter
-    from lcpr_core.backend_replay import StreamRecorder
+    from lcpr_core.backend.lidar_odometry import KissOdometry
+    from lcpr_core.backend.replay import StreamRecorder
     from lcpr_core.detector import DetectorConfig, Frame, LoopDetector
     from lcpr_core.lcpr.config import ModelConfig
-    from lcpr_core.lidar_odometry import KissOdometry
     from lcpr_core.pretrained import default_weights
     from msg_tools.convert.scan_folder import ScanFolder
 
@@ -103,6 +105,7 @@ def record(folder: Path, *, threads: int, kiss: KissConfig | None) -> LoopStream
     return recorder.stream(seconds=seconds)
 
 
+@tool_main
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", type=Path, default=None,
@@ -132,8 +135,8 @@ def main(argv: list[str] | None = None) -> int:
     from lcpr_common.shared_data import shared_path
     from lcpr_core.atomic import write_bytes_atomic
     from lcpr_core.backend import BackendConfig, config_dict
-    from lcpr_core.backend_replay import LoopStream, loop_pairs, replay, trajectory_error
-    from lcpr_core.lidar_odometry import KissConfig
+    from lcpr_core.backend.lidar_odometry import KissConfig
+    from lcpr_core.backend.replay import LoopStream, loop_pairs, replay, trajectory_error
     from lcpr_core.posegraph import plot_trajectories
     from lcpr_core.timing import cpu_model
 

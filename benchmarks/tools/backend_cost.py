@@ -38,6 +38,8 @@ from typing import Any
 
 import numpy as np
 
+from lcpr_common.cli import tool_main
+
 SIDE_M = 125.0
 STEP_M = 1.0
 DT_S = 0.1
@@ -60,6 +62,7 @@ class Timing:
     nodes: int
 
 
+@tool_main
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--nodes", type=int, default=2000, help="keyframes in the graph when timing starts")

@@ -24,11 +24,11 @@ from rclpy.parameter import Parameter  # noqa: E402
 from std_msgs.msg import Float64MultiArray  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
+from backend_ros.config import BackendNodeConfig, LidarMount, settings_from, yaml_text  # noqa: E402
+from backend_ros.node import BackendNode, TFMessage  # noqa: E402
 from lcpr_core.backend import PoseGraphBackend  # noqa: E402
-from lcpr_core.lcpr.detector import Result  # noqa: E402
+from lcpr_core.detector import Result  # noqa: E402
 from lcpr_core.posegraph import DriftModel, ate_rmse, drift_odometry  # noqa: E402
-from lcpr_ros.backend_config import BackendNodeConfig, LidarMount, settings_from, yaml_text  # noqa: E402
-from lcpr_ros.backend_node import BackendNode, TFMessage  # noqa: E402
 from lcpr_ros.outputs import CANDIDATE_COLUMNS, up_msg  # noqa: E402
 from msg_tools.geometry import matrix_to_quaternion  # noqa: E402
 from msg_tools.transforms import odometry_to_pose, pose_to_odometry  # noqa: E402
@@ -228,8 +228,8 @@ def test_the_node_settings_refuse_bad_values_and_the_yaml_lists_every_parameter(
 def test_the_launch_file_starts_odometry_detector_and_back_end_with_their_params_files() -> None:
     import xml.etree.ElementTree as ET
 
-    from lcpr_ros import kiss_icp_node
-    from lcpr_ros.backend_config import all_leaves
+    from backend_ros import kiss_icp_node
+    from backend_ros.config import all_leaves
     from lcpr_ros.params import all_leaves as detector_leaves
 
     repo = Path(__file__).resolve().parents[2]

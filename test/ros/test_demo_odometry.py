@@ -11,7 +11,7 @@ pytest.importorskip("gtsam")
 pytest.importorskip("kiss_icp")
 pytest.importorskip("rclpy")
 
-from lcpr_core.lcpr.detector import Candidate  # noqa: E402
+from lcpr_core.detector import Candidate  # noqa: E402
 from lcpr_ros.demo import demo_drive, kiss_icp_backend, parse_args  # noqa: E402
 from lcpr_ros.outputs import CANDIDATE_COLUMNS, _row  # noqa: E402
 

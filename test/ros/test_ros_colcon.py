@@ -50,18 +50,21 @@ def run_installed(prefix: Path, *command: str, **extra_env: str) -> subprocess.C
 
 @pytest.mark.slow
 def test_colcon_installs_the_executables_the_params_file_and_the_launch_file(installed: Path) -> None:
-    for exe in ("lcpr_node", "lcpr_replay"):
+    for exe in ("lcpr_node", "lcpr_replay", "lcpr_backend", "lcpr_kiss_icp"):
         assert (installed / "lib" / PACKAGE / exe).is_file(), f"{exe} not installed under lib/{PACKAGE}"
     share = installed / "share" / PACKAGE
     assert (share / "package.xml").is_file()
     assert (share / "config" / "lcpr.yaml").is_file()
     assert (share / "launch" / "lcpr.launch.xml").is_file()
+    assert (share / "launch" / "lcpr_backend.launch.xml").is_file()
+    assert (share / "config" / "lcpr_backend.yaml").is_file()
     assert (installed / "share" / "ament_index" / "resource_index" / "packages" / PACKAGE).is_file()
 
 
 @pytest.mark.slow
 def test_the_installed_lcpr_node_runs_from_the_install_tree(installed: Path) -> None:
-    where = run_installed(installed, "-c", "import lcpr_ros, lcpr_core; print(lcpr_ros.__file__, lcpr_core.__file__)")
+    where = run_installed(installed, "-c", "import lcpr_ros, lcpr_core, backend_ros; "
+                          "print(lcpr_ros.__file__, lcpr_core.__file__, backend_ros.__file__)")
     assert where.returncode == 0, where.stderr
     assert all(path.startswith(str(installed)) for path in where.stdout.split()), where.stdout
     done = run_installed(installed, str(installed / "lib" / PACKAGE / "lcpr_node"), "--help")

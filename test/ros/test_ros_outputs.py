@@ -8,7 +8,7 @@ import pytest
 
 pytest.importorskip("std_msgs")
 
-from lcpr_core.lcpr.detector import Candidate, Result  # noqa: E402
+from lcpr_core.detector import Candidate, Result  # noqa: E402
 from lcpr_ros.outputs import CANDIDATE_COLUMNS, candidates_msg, parse_candidates, row_covariance, row_pose  # noqa: E402
 
 

@@ -1,4 +1,4 @@
-"""A recorded drive replayed through the back end (lcpr_core.backend_replay): streams, false loops, ATE."""
+"""A recorded drive replayed through the back end (lcpr_core.backend.replay): streams, false loops, ATE."""
 from __future__ import annotations
 
 import dataclasses
@@ -10,7 +10,7 @@ import pytest
 pytest.importorskip("gtsam")
 
 from lcpr_core.backend import BackendConfig, LoopPolicy  # noqa: E402
-from lcpr_core.backend_replay import (  # noqa: E402
+from lcpr_core.backend.replay import (  # noqa: E402
     FALSE_MIN_M,
     MIN_GAP_S,
     LoopStream,
@@ -20,8 +20,8 @@ from lcpr_core.backend_replay import (  # noqa: E402
     replay,
     trajectory_error,
 )
+from lcpr_core.detector import Candidate, Result  # noqa: E402
 from lcpr_core.errors import InvalidValueError  # noqa: E402
-from lcpr_core.lcpr.detector import Candidate, Result  # noqa: E402
 from lcpr_core.posegraph import DriftModel, drift_odometry  # noqa: E402
 from trajectory_fixtures import pose, square_laps  # noqa: E402
 
@@ -159,6 +159,41 @@ def test_the_recorder_refuses_frames_out_of_order_and_results_of_frames_it_never
     assert len(rec.stream().keyframes) == 0
     with pytest.raises(InvalidValueError, match="base_T_lidar of shape"):
         StreamRecorder(base_T_lidar=np.eye(3))
+
+
+@dataclasses.dataclass(frozen=True)
+class PlainCandidate:
+    query_stamp: float
+    match_stamp: float
+    verified: bool
+    match_T_query: np.ndarray | None
+    covariance: np.ndarray | None
+
+
+@dataclasses.dataclass(frozen=True)
+class PlainResult:
+    stamp: float
+    keyframe_id: int | None
+    up: np.ndarray | None
+    candidates: tuple[PlainCandidate, ...]
+
+
+def test_the_recorder_takes_any_detectors_result_that_carries_the_fields_it_reads() -> None:
+    rec = StreamRecorder(base_T_lidar=np.eye(4))
+    for t in (10.0, 20.0, 30.0):
+        rec.add_frame(t, odometry=pose(t), truth=None)
+    rel = np.linalg.inv(pose(10.0)) @ pose(30.0)
+    rec.add_result(PlainResult(10.0, 0, None, ()))
+    rec.add_result(PlainResult(20.0, None, None, ()))  # not a keyframe: nothing recorded
+    rec.add_result(PlainResult(30.0, 1, np.array([0.0, 0.0, 1.0]), (
+        PlainCandidate(30.0, 10.0, True, rel, None),
+        PlainCandidate(30.0, 20.0, False, None, None),  # unverified: not a loop
+        PlainCandidate(30.0, 99.0, True, rel, None))))  # a frame never recorded: skipped
+    stream = rec.stream()
+    assert stream.keyframes.tolist() == [0, 2] and stream.loops.tolist() == [[2, 0]]
+    np.testing.assert_array_equal(stream.loop_T[0], rel)
+    assert np.isnan(stream.loop_cov[0]).all() and np.isnan(stream.ups[0]).all() and stream.ups[1, 2] == 1.0
+    assert rec.skipped_loops == 1
 
 
 def test_a_whole_evaluation_reports_both_ates_and_draws_the_png(tmp_path: Path) -> None:

@@ -2,7 +2,7 @@
 
 Subscribes one sensor_msgs/PointCloud2 (``lidar_topic``, read with :func:`msg_tools.pointcloud2_to_array`;
 points with NaN/inf or at the origin dropped), registers each cloud with
-:class:`lcpr_core.lidar_odometry.KissOdometry` on a worker thread and publishes ``~/odometry``
+:class:`lcpr_core.backend.lidar_odometry.KissOdometry` on a worker thread and publishes ``~/odometry``
 (nav_msgs/Odometry, ``odom_frame`` -> ``base_frame``, stamped with the cloud's header stamp; the
 base pose from the LiDAR's through ``lidar.xyz`` / ``lidar.rpy``) and /diagnostics. While the worker
 registers one cloud, the newest waits and older ones are dropped (counted): odometry over a gap is
@@ -24,14 +24,15 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2
 
+from lcpr_common.params import param
+from lcpr_core.backend.lidar_odometry import KissConfig, KissOdometry
 from lcpr_core.errors import RuntimeSetupError
-from lcpr_core.lidar_odometry import KissConfig, KissOdometry
 from msg_tools.transforms import pose_to_odometry
-from ros_common.config import INPUT_QOS, SHARED_DOCS, DiagnosticsConfig, require
+from ros_common.config import DiagnosticsConfig, check_node_fields, input_qos_param, require
 from ros_common.diagnostics import HARDWARE_ID
 from ros_common.errors import ConfigError, InputRejected
-from ros_common.inputs import CLOUD_NAN, cloud_array, finite_points
-from ros_common.params import Leaf, ParamDoc, build, describe, leaves, to_yaml, unique
+from ros_common.inputs import CLOUD_NAN, cloud_points
+from ros_common.params import Leaf, build, describe, leaves, to_yaml, unique
 from ros_common.process import node_parser, run_node
 from ros_common.qos import QOS_ADAPTED, SensorSubscription
 from ros_common.ros_params import declare
@@ -39,7 +40,7 @@ from ros_common.stamps import NS_PER_S, StampOrder, stamp_ns
 from ros_common.stats import NodeStats
 from ros_common.worker import Worker
 
-from .backend_config import LidarMount
+from .config import LidarMount
 
 NODE_NAME = "lcpr_kiss_icp"
 BUSY = "cloud: replaced while busy"
@@ -49,48 +50,30 @@ SHUTDOWN_TIMEOUT = 10.0
 
 @dataclass(frozen=True, kw_only=True)
 class KissNodeConfig:
-    lidar_topic: str = "/LIDAR_TOP/points"
-    input_qos: str = "best_available"
-    odom_frame: str = "odom"
-    base_frame: str = "base_link"
+    lidar_topic: str = param("/LIDAR_TOP/points", "sensor_msgs/PointCloud2 with x, y, z (any other fields are "
+                                                  "ignored)")
+    input_qos: str = input_qos_param()
+    odom_frame: str = param("odom", "header.frame_id of ~/odometry (the odometry's world frame)")
+    base_frame: str = param("base_link", "child_frame_id of ~/odometry")
     lidar: LidarMount = field(default_factory=LidarMount)
     kiss: KissConfig = field(default_factory=KissConfig)
     diagnostics: DiagnosticsConfig = field(default_factory=DiagnosticsConfig)
 
     def __post_init__(self) -> None:
+        check_node_fields(self)
         require(bool(self.lidar_topic), "lidar_topic is empty; a PointCloud2 topic is required")
-        require(self.input_qos in INPUT_QOS, f"input_qos={self.input_qos!r}; accepted: {', '.join(INPUT_QOS)}")
         require(bool(self.odom_frame) and bool(self.base_frame), "odom_frame and base_frame must not be empty")
 
 
-DOCS: dict[str, ParamDoc] = {
-    **SHARED_DOCS,
-    "lidar_topic": ParamDoc("sensor_msgs/PointCloud2 with x, y, z (any other fields are ignored)"),
-    "odom_frame": ParamDoc("header.frame_id of ~/odometry (the odometry's world frame)"),
-    "base_frame": ParamDoc("child_frame_id of ~/odometry"),
-    "lidar.xyz": ParamDoc("m: the LiDAR in the base frame (the pose published is the base frame's)"),
-    "lidar.rpy": ParamDoc("rad: roll, pitch, yaw of the LiDAR in the base frame (R = Rz Ry Rx)"),
-    "kiss.max_range": ParamDoc("m: farther points are dropped", 1.0, 1000.0),
-    "kiss.min_range": ParamDoc("m: nearer points are dropped (the vehicle itself)", 0.0, 100.0),
-    "kiss.voxel_size": ParamDoc("m of the local map's voxels; 0 = max_range / 100", 0.0, 10.0),
-    "kiss.max_points_per_voxel": ParamDoc("points kept per voxel of the local map", 1, 1000),
-    "kiss.initial_threshold": ParamDoc("m: correspondence distance before the adaptive threshold has data",
-                                       0.01, 100.0),
-    "kiss.min_motion": ParamDoc("m: motion below which a cloud does not update the adaptive threshold", 0.001, 10.0),
-    "kiss.max_iterations": ParamDoc("ICP iterations per cloud at most", 1, 10000),
-    "kiss.threads": ParamDoc("registration threads; 0 = all cores", 0, 1024),
-}
-
-
 def all_leaves() -> list[Leaf]:
-    return unique(leaves(KissNodeConfig(), docs=DOCS))
+    return unique(leaves(KissNodeConfig()))
 
 
 YAML_HEADER = """lcpr_kiss_icp parameters (node name lcpr_kiss_icp) with their defaults, from
-lcpr_ros.kiss_icp_node.KissNodeConfig (kiss.*: lcpr_core.lidar_odometry.KissConfig).
+backend_ros.kiss_icp_node.KissNodeConfig (kiss.*: lcpr_core.backend.lidar_odometry.KissConfig).
 Use: lcpr_kiss_icp --ros-args --params-file config/lcpr_kiss_icp.yaml
 Regenerate after adding fields:
-  python -c "from lcpr_ros.kiss_icp_node import yaml_text; print(yaml_text(), end='')" > config/lcpr_kiss_icp.yaml
+  python -c "from backend_ros.kiss_icp_node import yaml_text; print(yaml_text(), end='')" > config/lcpr_kiss_icp.yaml
 """
 
 
@@ -131,7 +114,7 @@ class KissIcpNode(NodeStats, Node):
         self.rates.tick(self.settings.lidar_topic)
         ns = stamp_ns(msg.header)
         try:
-            cloud = cloud_array(msg)
+            points, removed = cloud_points(msg)
         except InputRejected as err:
             self.drops.add(err.reason)
             self.warnings(err.reason, err.detail)
@@ -141,7 +124,6 @@ class KissIcpNode(NodeStats, Node):
             self.drops.add(f"cloud: {refused}")
             self.warnings(f"cloud: {refused}", f"stamp {ns / NS_PER_S:.9f}")
             return
-        points, _, removed = finite_points(cloud)
         if removed:
             self.fixes.add(CLOUD_NAN, removed)
         self.worker.submit((msg.header.stamp, points, time.monotonic()))

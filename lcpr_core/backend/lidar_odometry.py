@@ -21,8 +21,10 @@ from typing import Any
 
 import numpy as np
 
-from .errors import InvalidValueError, RuntimeSetupError
-from .geometry import invert
+from lcpr_common.params import check_fields, param
+
+from ..errors import InvalidValueError, RuntimeSetupError
+from ..geometry import invert
 
 __all__ = ["KissConfig", "KissOdometry", "run_kiss_icp"]
 
@@ -31,31 +33,24 @@ __all__ = ["KissConfig", "KissOdometry", "run_kiss_icp"]
 class KissConfig:
     """KISS-ICP's settings (its defaults, except a 2 m minimum range: the vehicle's own returns)."""
 
-    max_range: float = 100.0  # m: farther points are dropped
-    min_range: float = 2.0  # m: nearer points are dropped
-    voxel_size: float = 0.0  # m of the local map's voxels; 0 = max_range / 100 (KISS-ICP's rule)
-    max_points_per_voxel: int = 20
-    initial_threshold: float = 2.0  # m: correspondence distance before the adaptive threshold has data
-    min_motion: float = 0.1  # m: motion below which a frame does not update the adaptive threshold
-    max_iterations: int = 500  # ICP iterations per cloud at most
-    threads: int = 1  # registration threads; 0 = all cores
+    max_range: float = param(100.0, "m: farther points are dropped", lo=1.0, hi=1000.0)
+    # the vehicle itself
+    min_range: float = param(2.0, "m: nearer points are dropped (the vehicle itself)", lo=0.0, hi=100.0)
+    # max_range / 100: KISS-ICP's rule
+    voxel_size: float = param(0.0, "m of the local map's voxels; 0 = max_range / 100", lo=0.0, hi=10.0)
+    max_points_per_voxel: int = param(20, "points kept per voxel of the local map", lo=1, hi=1000)
+    initial_threshold: float = param(2.0, "m: correspondence distance before the adaptive threshold has data",
+                                     lo=0.01, hi=100.0)
+    min_motion: float = param(0.1, "m: motion below which a cloud does not update the adaptive threshold",
+                              lo=0.001, hi=10.0)
+    max_iterations: int = param(500, "ICP iterations per cloud at most", lo=1, hi=10000)
+    threads: int = param(1, "registration threads; 0 = all cores", lo=0, hi=1024)
 
     def __post_init__(self) -> None:
-        for name in ("max_range", "initial_threshold", "min_motion"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise InvalidValueError(f"KissConfig.{name}={value!r}; expected a finite number > 0")
-        for name in ("min_range", "voxel_size"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0):
-                raise InvalidValueError(f"KissConfig.{name}={value!r}; expected a finite number >= 0")
+        check_fields(self, error=InvalidValueError, prefix="KissConfig.")
         if self.min_range >= self.max_range:
             raise InvalidValueError(f"KissConfig.min_range={self.min_range!r} is not below max_range="
                                     f"{self.max_range!r}")
-        for name, low in (("max_points_per_voxel", 1), ("max_iterations", 1), ("threads", 0)):
-            value = getattr(self, name)
-            if not isinstance(value, int) or isinstance(value, bool) or value < low:
-                raise InvalidValueError(f"KissConfig.{name}={value!r}; expected an integer >= {low}")
 
     def kiss_config(self) -> Any:
         """The kiss_icp.config.KISSConfig of these settings."""

@@ -2,7 +2,7 @@
 
     rec = StreamRecorder(base_T_lidar=T)
     rec.add_frame(stamp, odometry=world_T_base, truth=true_world_T_base)   # every LiDAR frame, in order
-    rec.add_result(detector.process(frame))                                # a detector Result, after its frame
+    rec.add_result(detector.process(frame))                                # a DetectorResult, after its frame
     stream = rec.stream()
     run = replay(stream, inject=20, seed=0, config=BackendConfig())
     before, after = trajectory_error(stream.odometry, stream.truth), trajectory_error(run.trajectory, stream.truth)
@@ -31,30 +31,57 @@ import json
 import math
 import os
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 
-from .atomic import atomic_path
-from .backend import BackendConfig, BackendStats, PoseGraphBackend
-from .errors import BackendError, InvalidValueError
-from .geometry import invert
-from .loop_report import covariance_lidar_to_body
-from .posegraph import ate_rmse, lidar_to_body
+from ..atomic import atomic_path
+from ..errors import BackendError, InvalidValueError
+from ..geometry import invert
+from ..loop_report import covariance_lidar_to_body
+from ..posegraph import ate_rmse, lidar_to_body, plot_trajectories
+from .config import BackendConfig, config_dict
+from .graph import BackendStats, PoseGraphBackend
 
-if TYPE_CHECKING:
-    from .lcpr.detector import Result
-
-__all__ = ["FALSE_LOOP_COV", "FALSE_MIN_M", "MIN_GAP_S", "BackendEvaluation", "LoopStream", "ReplayRun",
-           "StreamRecorder", "TrajectoryAccuracy", "evaluate_backend", "false_loops", "loop_pairs", "replay",
-           "trajectory_error"]
+__all__ = ["FALSE_LOOP_COV", "FALSE_MIN_M", "MIN_GAP_S", "BackendEvaluation", "DetectedCandidate", "DetectorResult",
+           "LoopStream", "ReplayRun", "StreamRecorder", "TrajectoryAccuracy", "evaluate_backend", "false_loops",
+           "loop_pairs", "replay", "trajectory_error"]
 
 FALSE_LOOP_COV = np.diag([0.05**2] * 3 + [math.radians(0.5) ** 2] * 3)  # "confident": as a good ICP claims
 FALSE_MIN_M = 20.0  # an injected loop joins keyframes at least this far apart (by the truth): truly wrong
 MIN_GAP_S = 30.0  # and this much older (as the detector's exclusion)
 _ARRAYS = ("stamps", "truth", "odometry", "keyframes", "loops", "loop_T", "loop_cov", "base_T_lidar")
+
+
+class DetectedCandidate(Protocol):
+    """What the recorder reads of a detector's candidate (lcpr_core.detector.Candidate has it)."""
+
+    @property
+    def query_stamp(self) -> float: ...
+    @property
+    def match_stamp(self) -> float: ...
+    @property
+    def verified(self) -> bool: ...
+    @property
+    def match_T_query(self) -> np.ndarray | None: ...  # 4 x 4, LiDAR frames; None: not registered
+    @property
+    def covariance(self) -> np.ndarray | None: ...  # 6 x 6 of match_T_query; None: not given
+
+
+class DetectorResult(Protocol):
+    """What the recorder reads of a detector's result of one frame (lcpr_core.detector.Result has it), so that
+    the back end takes any detector's output without importing a detector."""
+
+    @property
+    def stamp(self) -> float: ...
+    @property
+    def keyframe_id(self) -> int | None: ...  # None: the frame did not become a keyframe
+    @property
+    def up(self) -> np.ndarray | None: ...  # (3,) up from the keyframe's walls, LiDAR frame; None: not measured
+    @property
+    def candidates(self) -> Sequence[DetectedCandidate]: ...
 
 
 @dataclass
@@ -218,7 +245,7 @@ class StreamRecorder:
         self._loop_cov.append(np.full((6, 6), np.nan) if covariance is None else np.asarray(covariance, np.float64))
         return True
 
-    def add_result(self, result: Result) -> None:
+    def add_result(self, result: DetectorResult) -> None:
         """A detector result of a recorded frame: a keyframe, and its verified candidates as loops."""
         if result.keyframe_id is None:
             return
@@ -429,8 +456,6 @@ class BackendEvaluation:
     config: BackendConfig
 
     def to_dict(self) -> dict[str, Any]:
-        from .backend import config_dict
-
         ms = np.asarray(self.run.loop_ms)
         return {"odometry": self.odometry_name, "frames": len(self.stream.stamps), "length_m": self.stream.length_m,
                 "keyframes": len(self.stream.keyframes), "loops": len(self.stream.loops),
@@ -448,8 +473,6 @@ class BackendEvaluation:
 
     def write_plot(self, path: str | os.PathLike[str], *, title: str) -> None:
         """Top view of the truth, the odometry and the corrected trajectory (frames with a known truth), PNG."""
-        from .posegraph import plot_trajectories
-
         known = np.isfinite(self.stream.truth).all(axis=(1, 2))
         row = np.cumsum(known) - 1  # frame index -> index among the known frames
         pairs = [(int(row[q]), int(row[m])) for q, m in loop_pairs(self.stream, self.run) if known[q] and known[m]]

@@ -2,7 +2,7 @@
 
 Subscribes nav_msgs/Odometry (``odom_topic``), the detector's ``~/candidates``
 (``candidates_topic``; rows with verified = 1, read by the column names of
-:mod:`lcpr_ros.outputs`) and its ``~/up`` (``up_topic``: each keyframe's up from its walls) and
+:mod:`ros_common.tables`) and its ``~/up`` (``up_topic``: each keyframe's up from its walls) and
 feeds :class:`lcpr_core.backend.PoseGraphBackend` (GTSAM iSAM2).
 Publishes ``~/odometry`` (every odometry message, corrected: ``map_T_odom @ odom_T_base``),
 ``~/path`` (the graph's keyframe poses), map -> odom on /tf (geometry_msgs/TransformStamped on
@@ -51,10 +51,10 @@ from ros_common.ros_params import declare
 from ros_common.stamps import NS_PER_S, StampOrder, stamp_ns
 from ros_common.static_tf import tf_message_type
 from ros_common.stats import NodeStats
+from ros_common.tables import parse_candidates, row_covariance, row_pose
 from ros_common.worker import Worker
 
-from .backend_config import BackendNodeConfig, all_leaves, describe_all, settings_from
-from .outputs import parse_candidates, row_covariance, row_pose
+from .config import BackendNodeConfig, all_leaves, describe_all, settings_from
 
 TFMessage = tf_message_type()
 

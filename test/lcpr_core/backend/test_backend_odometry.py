@@ -1,4 +1,4 @@
-"""KISS-ICP odometry (lcpr_core.lidar_odometry): clouds of a known motion in, the base frame's poses out."""
+"""KISS-ICP odometry (lcpr_core.backend.lidar_odometry): clouds of a known motion in, the base frame's poses out."""
 from __future__ import annotations
 
 import math
@@ -8,8 +8,8 @@ import pytest
 
 pytest.importorskip("kiss_icp")
 
+from lcpr_core.backend.lidar_odometry import KissConfig, KissOdometry, run_kiss_icp  # noqa: E402
 from lcpr_core.errors import InvalidValueError  # noqa: E402
-from lcpr_core.lidar_odometry import KissConfig, KissOdometry, run_kiss_icp  # noqa: E402
 from trajectory_fixtures import pose  # noqa: E402
 
 # the LiDAR 1 m ahead of and 2 m above the base, turned 90 deg (as the synthetic nuScenes rig's)
@@ -68,8 +68,8 @@ def test_clouds_out_of_order_or_without_points_are_refused_naming_the_value() ->
         odom.register(np.zeros(5), 6.0)
     with pytest.raises(InvalidValueError, match=r"a cloud of 0 finite points at stamp 6\.0"):
         odom.register(np.full((50, 3), np.nan), 6.0)
-    with pytest.raises(InvalidValueError, match=r"KissConfig\.min_range=200\.0 is not below max_range=100\.0"):
-        KissConfig(min_range=200.0)
+    with pytest.raises(InvalidValueError, match=r"KissConfig\.min_range=60\.0 is not below max_range=50\.0"):
+        KissConfig(min_range=60.0, max_range=50.0)
     assert odom.frames == 1
 
 
@@ -83,7 +83,7 @@ def test_the_kiss_icp_node_turns_clouds_into_odometry_of_the_base_frame() -> Non
     from rclpy.parameter import Parameter
     from sensor_msgs.msg import PointCloud2
 
-    from lcpr_ros.kiss_icp_node import KissIcpNode
+    from backend_ros.kiss_icp_node import KissIcpNode
     from msg_tools.pointcloud import array_to_pointcloud2, xyz_cloud
     from msg_tools.transforms import odometry_to_pose
     from ros_common.harness import spinning, wait_until
