@@ -20,6 +20,8 @@ import faiss
 import numpy as np
 from numpy.typing import ArrayLike
 
+from lcpr_common.params import check_fields, param
+
 from .errors import LcprError, MapError, MapSchemaError
 from .geometry import quaternions_xyzw, rotations_from_xyzw
 from .growable import GrowableArray
@@ -55,20 +57,17 @@ class MapConfig:
     or "hnsw" (approximate, faiss.IndexHNSWFlat). The hnsw_* fields only matter for "hnsw".
     """
 
-    dim: int = 256
-    descriptor_tag: str = "lcpr"
-    index: str = "flat"
-    hnsw_m: int = 32
-    hnsw_ef_search: int = 128
-    hnsw_ef_construction: int = 200
+    dim: int = param(256, "descriptor size stored in the map", lo=1, hi=65536)
+    descriptor_tag: str = param("lcpr", "names what made the map's descriptors (the file header's 'model' field); "
+                                        "a map file must carry the same tag (formerly map.model, still accepted "
+                                        "with a warning)")
+    index: str = param("flat", "search structure", choices=INDEX_TYPES)
+    hnsw_m: int = param(32, "HNSW graph degree (map.index = hnsw)", lo=1, hi=1024)
+    hnsw_ef_search: int = param(128, "HNSW search breadth (map.index = hnsw)", lo=1, hi=1 << 20)
+    hnsw_ef_construction: int = param(200, "HNSW build breadth (map.index = hnsw)", lo=1, hi=1 << 20)
 
     def __post_init__(self) -> None:
-        if self.index not in INDEX_TYPES:
-            raise MapError(f"index {self.index!r} is not supported; accepted: {', '.join(INDEX_TYPES)}")
-        for name in ("dim", "hnsw_m", "hnsw_ef_search", "hnsw_ef_construction"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-                raise MapError(f"{name}={value!r} is not accepted; it must be a positive integer")
+        check_fields(self, error=MapError)
         if not isinstance(self.descriptor_tag, str) or not self.descriptor_tag:
             raise MapError(f"descriptor_tag={self.descriptor_tag!r} is not accepted; it must be a non-empty string")
 

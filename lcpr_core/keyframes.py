@@ -10,6 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lcpr_common.params import check_fields, param
+
 from .errors import InvalidValueError
 
 KEYFRAME, TOO_SOON, NOT_MOVED = "keyframe", "too soon", "not moved"
@@ -17,14 +19,12 @@ KEYFRAME, TOO_SOON, NOT_MOVED = "keyframe", "too soon", "not moved"
 
 @dataclass(frozen=True)
 class KeyframeConfig:
-    min_interval: float = 0.5  # s between keyframes (header stamps)
-    min_distance: float = 0.0  # m travelled between keyframes when poses are known; 0 = off
+    min_interval: float = param(0.5, "s (header stamps) between keyframes", lo=0.0, hi=3600.0, dynamic=True)
+    min_distance: float = param(0.0, "m travelled between keyframes when poses are known; 0 = off", lo=0.0, hi=1e6,
+                                dynamic=True)
 
     def __post_init__(self) -> None:
-        for name in ("min_interval", "min_distance"):
-            value = getattr(self, name)
-            if not value >= 0:
-                raise InvalidValueError(f"KeyframeConfig.{name}={value!r}; it must be >= 0")
+        check_fields(self, error=InvalidValueError, prefix="KeyframeConfig.")
 
 
 def keyframe_reason(stamp: float, position: np.ndarray | None, *, last_stamp: float | None,

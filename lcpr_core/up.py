@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lcpr_common.params import check_fields, param
+
 from .errors import InvalidValueError
 from .geometry import unit_vector
 from .verification.submap import azimuth_coverage_deg
@@ -32,36 +34,35 @@ __all__ = ["UpConfig", "UpEstimate", "estimate_up"]
 class UpConfig:
     """How walls are found and trusted."""
 
-    enabled: bool = True  # the detector measures each keyframe's up (Result.up) for the back end
-    voxel: float = 0.2  # m, the cloud is voxel-downsampled first (0: not)
-    neighbours: int = 12  # points per normal
-    planarity: float = 0.05  # a point is on a plane when its smallest covariance eigenvalue < this x the middle one
-    min_range: float = 1.0  # m, closer points (the carrier, the person) are ignored
-    max_range: float = 60.0  # m
-    max_tilt_deg: float = 30.0  # a wall normal lies within this of the horizontal plane of ``prior_up``
-    inlier_deg: float = 5.0  # walls further from vertical than this (roofs, slopes) are dropped while refining
-    iterations: int = 5
-    min_walls: int = 100  # fewer wall points: no estimate
-    min_spread: float = 0.02  # the second wall direction's share of the first (eigenvalue ratio); below: no estimate
-    # deg of azimuth the cloud must cover (submap.azimuth_coverage_deg): a narrow field of view sees the walls of one
-    # side, and on the handheld Livox sequences (70 deg) their ups bent the heights instead of holding them
-    min_fov_deg: float = 180.0
+    enabled: bool = param(True, "measure each keyframe's up direction from the walls its cloud sees and publish it "
+                                "on ~/up (lcpr_backend holds the map's roll and pitch with it)", dynamic=True)
+    voxel: float = param(0.2, "m, voxel grid of the cloud before its normals are estimated; 0 = none", lo=0.0,
+                         hi=5.0, dynamic=True)
+    neighbours: int = param(12, "points per normal", lo=3, hi=200, dynamic=True)
+    planarity: float = param(0.05, "a point lies on a plane when its smallest covariance eigenvalue is under this "
+                                   "share of the middle one", lo=0.0, hi=1.0, dynamic=True)
+    min_range: float = param(1.0, "m, closer points (the vehicle, the person carrying the sensor) are ignored",
+                             lo=0.0, hi=1000.0, dynamic=True)
+    max_range: float = param(60.0, "m, farther points are ignored", lo=0.0, hi=1000.0, dynamic=True)
+    max_tilt_deg: float = param(30.0, "deg: a plane whose normal is within this of the LiDAR's horizontal plane "
+                                      "counts as a wall", lo=0.0, hi=90.0, lo_open=True, hi_open=True, dynamic=True)
+    inlier_deg: float = param(5.0, "deg: walls further from vertical than this (roofs, slopes) are dropped while the "
+                                   "up is refined", lo=0.0, hi=90.0, dynamic=True)
+    iterations: int = param(5, "refinement passes", lo=1, hi=100, dynamic=True)
+    min_walls: int = param(100, "wall points needed for an up (fewer: none published)", lo=1, hi=1_000_000,
+                           dynamic=True)
+    min_spread: float = param(0.02, "the second wall direction's share of the first (eigenvalue ratio) needed; "
+                                    "walls facing one way leave a tilt unseen", lo=0.0, hi=1.0, dynamic=True)
+    # a narrow field of view sees the walls of one side, and their ups bend the heights instead of holding them
+    # (docs/backend.md, "Measured up from the walls")
+    min_fov_deg: float = param(180.0, "deg of azimuth a keyframe's cloud must cover for an up (a narrow field of "
+                                      "view sees the walls of one side only); 0 = any", lo=0.0, hi=360.0,
+                               dynamic=True)
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
             raise InvalidValueError(f"up.enabled={self.enabled!r}; expected true or false")
-        for name in ("voxel", "planarity", "min_range", "max_range", "max_tilt_deg", "inlier_deg", "min_spread",
-                     "min_fov_deg"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise InvalidValueError(f"up.{name}={value!r}; expected a finite number >= 0")
-        for name in ("neighbours", "iterations", "min_walls"):
-            value = getattr(self, name)
-            if not (isinstance(value, int) and value >= (3 if name == "neighbours" else 1)):
-                raise InvalidValueError(f"up.{name}={value!r}; expected an integer >= "
-                                        f"{3 if name == 'neighbours' else 1}")
-        if not 0 < self.max_tilt_deg < 90:
-            raise InvalidValueError(f"up.max_tilt_deg={self.max_tilt_deg!r}; expected 0 < max_tilt_deg < 90")
+        check_fields(self, error=InvalidValueError, prefix="up.")
         if self.max_range <= self.min_range:
             raise InvalidValueError(f"up.max_range={self.max_range!r} <= up.min_range={self.min_range!r}; "
                                     "expected max_range > min_range")

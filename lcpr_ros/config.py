@@ -1,56 +1,65 @@
 """The node's own settings (topics, synchronisation, map file, diagnostics) as typed config.
 
-The detector's settings are :class:`lcpr_core.lcpr.detector.DetectorConfig`; both are
-exposed as ROS parameters by :mod:`lcpr_ros.params`, which walks these dataclasses.
-Every ``__post_init__`` refuses a bad value with a ValueError naming it.
+The detector's settings are :class:`lcpr_core.detector.DetectorConfig`; both are
+exposed as ROS parameters by :mod:`lcpr_ros.params`, which walks these dataclasses. Each field
+carries its description, range or choices and run-time flag (:func:`lcpr_common.params.param`);
+every ``__post_init__`` refuses a bad value with a ValueError naming it.
 """
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
 
-from lcpr_core.lcpr.detector import DetectorConfig
+from lcpr_common.params import param
+from lcpr_core.detector import DetectorConfig
 from msg_tools.frames import NUSCENES_TOPICS
-from ros_common.config import INPUT_QOS, DiagnosticsConfig, MapFileConfig, require, require_finite_non_negative
+from ros_common.config import DiagnosticsConfig, MapFileConfig, check_node_fields, input_qos_param, require
 
 CAMERA_TYPES = ("auto", "compressed", "raw")
 
 
 @dataclass(frozen=True)
 class SyncConfig:
-    slop: float = 0.05  # s: each camera's image nearest the cloud stamp within this is used
-    camera_timeout: float = 1.0  # s of header time: a camera silent this long counts as stopped (None)
-    max_wait: float = 0.2  # s of wall time a cloud waits for images stamped after it
-    min_cameras: int = 1  # frames with fewer images are dropped ("no camera")
-    odom_max_gap: float = 1.0  # s: odometry neighbours at most this far apart are interpolated
-    image_buffer: int = 16  # images kept per camera for matching
-    max_pending: int = 8  # clouds waiting for images at most; older ones are dropped
-    jump_back: float = 5.0  # s: a stamp this much older than its stream's newest starts a new session; 0 = refuse
+    slop: float = param(0.05, "s: each camera's image nearest the cloud stamp within this is used", lo=0.0, hi=10.0,
+                        dynamic=True)
+    camera_timeout: float = param(1.0, "s of header time: a camera silent this long is stopped (frames degraded)",
+                                  lo=0.0, hi=3600.0, dynamic=True)
+    max_wait: float = param(0.2, "s of wall time a cloud waits for camera images stamped after it", lo=0.0, hi=10.0,
+                            dynamic=True)
+    min_cameras: int = param(1, "frames with fewer camera images are dropped", lo=0, hi=64, dynamic=True)
+    odom_max_gap: float = param(1.0, "s: odometry neighbours at most this far apart are interpolated", lo=0.0,
+                                hi=60.0, dynamic=True)
+    image_buffer: int = param(16, "images kept per camera for matching", lo=1, hi=1000)
+    max_pending: int = param(8, "clouds waiting for images at most; older ones are dropped", lo=1, hi=1000)
+    jump_back: float = param(5.0, "s: a header stamp this much older than its stream's newest (a bag played again, "
+                                  "--loop, a simulator reset) starts a new session in the same map; 0 = refuse it "
+                                  "as out of order", lo=0.0, hi=86400.0)
 
     def __post_init__(self) -> None:
-        require_finite_non_negative(self, "slop", "camera_timeout", "max_wait", "odom_max_gap", "jump_back")
-        require(self.min_cameras >= 0, f"sync.min_cameras={self.min_cameras}; it must be >= 0")
-        require(self.image_buffer >= 1, f"sync.image_buffer={self.image_buffer}; it must be >= 1")
-        require(self.max_pending >= 1, f"sync.max_pending={self.max_pending}; it must be >= 1")
+        check_node_fields(self, "sync.")
 
 
 @dataclass(frozen=True)
 class NodeConfig:
-    camera_topics: tuple[str, ...] = NUSCENES_TOPICS.cameras  # nuScenes camera order
-    camera_type: str = "auto"  # auto (".../compressed" -> CompressedImage) | compressed | raw
-    lidar_topic: str = NUSCENES_TOPICS.lidar
-    odom_topic: str = ""  # nav_msgs/Odometry; "" = no poses (no markers, no distance keyframing)
-    input_qos: str = "best_available"  # best_available | sensor_data (best effort) | reliable (ros_common.qos)
+    camera_topics: tuple[str, ...] = param(NUSCENES_TOPICS.cameras, "camera image topics in rig (nuScenes) order")
+    camera_type: str = param("auto", "message type of the camera topics; auto: topics ending in /compressed are "
+                                     "sensor_msgs/CompressedImage, others sensor_msgs/Image", choices=CAMERA_TYPES)
+    lidar_topic: str = param(NUSCENES_TOPICS.lidar, "sensor_msgs/PointCloud2 topic")
+    odom_topic: str = param("", "nav_msgs/Odometry topic for poses (markers, keyframe.min_distance); empty = none")
+    input_qos: str = input_qos_param()
     sync: SyncConfig = field(default_factory=SyncConfig)
     map: MapFileConfig = field(default_factory=MapFileConfig)
     diagnostics: DiagnosticsConfig = field(default_factory=DiagnosticsConfig)
-    lidar_only: bool = False  # no camera subscriptions: every frame described with all camera slots empty
-    tf_static_topic: str = "/tf_static"  # the submap mount (odometry child frame -> cloud frame) from here; "" = off
+    lidar_only: bool = param(False, "no camera subscriptions: every frame is described with all camera slots "
+                                    "empty, verified and published as usual (a vehicle with a LiDAR and no "
+                                    "surround cameras)")
+    tf_static_topic: str = param("/tf_static", "tf2_msgs/TFMessage topic the submap mount (submap.lidar_xyz / "
+                                               "lidar_rpy) is read from: the transform from the odometry's child "
+                                               "frame to the clouds' frame, once heard, replaces those parameters; "
+                                               "needs tf2_msgs (a sourced ROS 2); empty = off")
 
     def __post_init__(self) -> None:
-        require(self.camera_type in CAMERA_TYPES,
-               f"camera_type={self.camera_type!r}; accepted: {', '.join(CAMERA_TYPES)}")
-        require(self.input_qos in INPUT_QOS, f"input_qos={self.input_qos!r}; accepted: {', '.join(INPUT_QOS)}")
+        check_node_fields(self)
         require(len(self.camera_topics) >= 1 and all(self.camera_topics),
                f"camera_topics={list(self.camera_topics)}; give one non-empty topic per camera")
         require(len(set(self.camera_topics)) == len(self.camera_topics),

@@ -1,8 +1,10 @@
-"""lcpr_node's parameters: every leaf of :class:`~lcpr_core.lcpr.detector.DetectorConfig` and
+"""lcpr_node's parameters: every leaf of :class:`~lcpr_core.detector.DetectorConfig` and
 :class:`~lcpr_ros.config.NodeConfig`, walked by :mod:`ros_common.params`.
 
 Names are dotted paths (``model.weights``, ``match.top_k``, ``sync.slop``, ``map.path`` ...);
-descriptions, ranges and the run-time-settable flag come from :data:`lcpr_ros.param_docs.DOCS`.
+descriptions, ranges and the run-time-settable flag come from each field's metadata
+(:func:`lcpr_common.params.param`), the one source of the params file, the reference page and the
+ROS descriptors.
 The offline tools read the same parameters from a params file (:func:`settings_from_file`), so an
 offline run evaluates what the node would run.
 """
@@ -13,17 +15,16 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from lcpr_core.detector import DetectorConfig
 from lcpr_core.lcpr.describer import ModelConfig
-from lcpr_core.lcpr.detector import DetectorConfig
 from lcpr_core.pretrained import BUNDLED, command_weights
 from ros_common.errors import ConfigError
 from ros_common.params import Leaf, build, describe, leaves, read_params_file, to_yaml, unique
 
 from .config import NodeConfig, check_together
-from .param_docs import DOCS
 
 YAML_HEADER = """lcpr_node parameters (node name lcpr) with their defaults, which come from the config
-dataclasses (lcpr_core.lcpr.detector.DetectorConfig, lcpr_ros.config.NodeConfig).
+dataclasses (lcpr_core.detector.DetectorConfig, lcpr_ros.config.NodeConfig).
 Use: lcpr_node --ros-args --params-file config/lcpr.yaml
 Regenerate after adding fields (test/ros/test_ros_params.py checks that every parameter is here):
   python -c "from lcpr_ros.params import yaml_text; print(yaml_text(), end='')" > config/lcpr.yaml
@@ -48,7 +49,7 @@ RENAMED: dict[str, str] = {"map.model": "map.descriptor_tag"}
 def all_leaves() -> list[Leaf]:
     """Every parameter of the node, names unique."""
     roots = (NODE_DEFAULTS.detector, NODE_DEFAULTS.node)
-    return unique([leaf for root in roots for leaf in leaves(root, docs=DOCS)])
+    return unique([leaf for root in roots for leaf in leaves(root)])
 
 
 def settings_from(values: Mapping[str, Any]) -> Settings:
@@ -87,9 +88,9 @@ MARKDOWN_PAGE = "docs/reference/lcpr_node_parameters.md"
 MARKDOWN_HEADER = f"""# lcpr_node parameters
 
 Every parameter of `lcpr_node` (node name `lcpr`) with its default, type, accepted range and
-description, generated from the config dataclasses (`lcpr_core.lcpr.detector.DetectorConfig`,
-`lcpr_ros.config.NodeConfig`) and `lcpr_ros.param_docs.DOCS`, as `config/lcpr.yaml` is. "run time"
-marks the parameters that can change while the node runs (`ros2 param set`); the others are read at
+description, generated from the config dataclasses (`lcpr_core.detector.DetectorConfig`,
+`lcpr_ros.config.NodeConfig`: each field's metadata), as `config/lcpr.yaml` is. "run time" marks
+the parameters that can change while the node runs (`ros2 param set`); the others are read at
 start. Invalid values are refused with the reason, at start (exit 1) and at run time.
 `lcpr_node --help` prints the same list.
 

@@ -1,16 +1,31 @@
-"""Settings both nodes have (input QoS, the map file, /diagnostics) and the validation helpers their
-config dataclasses use: every ``__post_init__`` refuses a bad value with a ValueError naming it."""
+"""Settings the nodes share (input QoS, the map file, /diagnostics) and the validation helpers their
+config dataclasses use: every ``__post_init__`` refuses a bad value with a ValueError naming it.
+
+Each field is declared with :func:`lcpr_common.params.param` (description, range or choices, run-time
+flag): the one source of its ROS parameter's descriptor, params-file entry and reference row.
+"""
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
-from .params import ParamDoc
+from lcpr_common.params import check_fields, param
 
 #: ``input_qos`` values (profiles: ros_common.qos). best_available (rclpy >= Iron) matches each
 #: publisher: reliable with reliable publishers such as ``ros2 bag play`` (a replay loses
 #: nothing), best effort with drivers that publish best effort.
 INPUT_QOS: tuple[str, ...] = ("best_available", "sensor_data", "reliable")
+
+
+def input_qos_param(description: str = "QoS of the sensor subscriptions: best_available (the default: reliable "
+                                       "with reliable publishers such as ros2 bag play, best effort with "
+                                       "best-effort drivers), sensor_data (best effort) or reliable") -> str:
+    """A node config's ``input_qos`` field (default best_available, one of :data:`INPUT_QOS`)."""
+    return param("best_available", description, choices=INPUT_QOS)
+
+
+def check_node_fields(config: object, prefix: str = "") -> None:
+    """:func:`lcpr_common.params.check_fields` for a node's own config: a ValueError names the bad value."""
+    check_fields(config, error=ValueError, prefix=prefix)
 
 
 def require(ok: bool, message: str) -> None:
@@ -19,35 +34,17 @@ def require(ok: bool, message: str) -> None:
         raise ValueError(message)
 
 
-def require_finite_non_negative(obj: object, *names: str) -> None:
-    for name in names:
-        value = getattr(obj, name)
-        require(isinstance(value, (int, float)) and math.isfinite(value) and value >= 0,
-                f"{name}={value!r}; it must be a finite number >= 0")
-
-
 @dataclass(frozen=True)
 class MapFileConfig:
-    path: str = ""  # map file (.npz); "" = in memory only
-    save_on_shutdown: bool = True
+    path: str = param("", "map file (.npz; lcpr_node: descriptors, vseq2pc_node: scans), loaded at start when it "
+                          "exists and saved on ~/save_map and at shutdown; empty = in memory only")
+    save_on_shutdown: bool = param(True, "save the map to map.path when the node stops (Ctrl-C, SIGTERM)")
 
 
 @dataclass(frozen=True)
 class DiagnosticsConfig:
-    period: float = 1.0  # s between /diagnostics messages (wall time)
-    window: int = 200  # latest items in the latency percentiles
+    period: float = param(1.0, "s between /diagnostics messages", lo=0.05, hi=3600.0)
+    window: int = param(200, "latest items (frames, scans) in the latency percentiles", lo=1, hi=100000)
 
     def __post_init__(self) -> None:
-        require(math.isfinite(self.period) and self.period > 0, f"period={self.period}; it must be > 0")
-        require(self.window >= 1, f"window={self.window}; it must be >= 1")
-
-
-#: Descriptions of the shared settings' parameters; each node's table adds its own (and may override).
-SHARED_DOCS: dict[str, ParamDoc] = {
-    "input_qos": ParamDoc("QoS of the sensor subscriptions: best_available (the default: reliable with reliable "
-                          "publishers such as ros2 bag play, best effort with best-effort drivers), sensor_data "
-                          "(best effort) or reliable", choices=INPUT_QOS),
-    "map.save_on_shutdown": ParamDoc("save the map to map.path when the node stops (Ctrl-C, SIGTERM)"),
-    "diagnostics.period": ParamDoc("s between /diagnostics messages", 0.05, 3600.0),
-    "diagnostics.window": ParamDoc("latest items (frames, scans) in the latency percentiles", 1, 100000),
-}
+        check_node_fields(self)

@@ -1,11 +1,12 @@
-"""Typed config <-> ROS parameters, generic over config dataclasses (both nodes use it).
+"""Typed config <-> ROS parameters, generic over config dataclasses (every node uses it).
 
 Every leaf field of a config dataclass becomes one parameter named by its dotted path
 (``match.top_k``, ``sync.slop``, ``map.path`` ...), with the dataclass default as its
-default. Going back, the dataclasses are constructed from the parameter values, so
-validation is theirs: a ValueError (or the core's LcprError) raised by a ``__post_init__``
-becomes a :class:`~ros_common.errors.ConfigError` with the reason, at start and when a
-parameter is set at run time. No rclpy import: :mod:`ros_common.ros_params` declares them.
+default and its description, range or choices and run-time flag from the field's metadata
+(:func:`lcpr_common.params.param`). Going back, the dataclasses are constructed from the
+parameter values, so validation is theirs: a ValueError (or the core's LcprError) raised by a
+``__post_init__`` becomes a :class:`~ros_common.errors.ConfigError` with the reason, at start
+and when a parameter is set at run time. No rclpy import: :mod:`ros_common.ros_params` declares them.
 """
 from __future__ import annotations
 
@@ -18,20 +19,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from lcpr_common.params import ParamSpec, spec_of
 from lcpr_core.errors import LcprError
 
 from .errors import ConfigError
 
 SCALARS: tuple[type, ...] = (bool, int, float, str)
-
-
-@dataclass(frozen=True)
-class ParamDoc:
-    description: str
-    low: float | None = None  # inclusive range (FloatingPointRange / IntegerRange)
-    high: float | None = None
-    choices: tuple[str, ...] = ()  # accepted strings, shown in additional_constraints
-    dynamic: bool = False  # may change while the node runs (others are read-only)
 
 
 @dataclass(frozen=True)
@@ -43,8 +36,7 @@ class Leaf:
     kind: type  # bool | int | float | str (the element type for tuples)
     array: bool  # a tuple field -> a ROS array parameter
     default: Any  # Python value (tuple for arrays)
-    doc: ParamDoc  # description, range, accepted values, run-time settable
-
+    doc: ParamSpec  # description, range, accepted values, run-time settable (the field's metadata)
 
     def to_ros(self, value: Any) -> Any:
         """Python value -> what rclpy stores (lists for arrays, floats for doubles)."""
@@ -71,9 +63,10 @@ def _field_kind(owner: type, name: str, hint: Any) -> tuple[type, bool]:
                     "(use bool, int, float, str, a tuple of one of them, or a nested dataclass)")
 
 
-def leaves(config: Any, prefix: str = "", *, docs: Mapping[str, ParamDoc] | None = None) -> list[Leaf]:
+def leaves(config: Any, prefix: str = "") -> list[Leaf]:
     """The parameters of a config instance (its values are the defaults), depth first, each described
-    by its entry in ``docs`` or, without one, by the dataclass field it mirrors."""
+    by its field's metadata (:func:`lcpr_common.params.param`); a field without any is named by its
+    dataclass (test/ros/test_node_parameters.py holds the nodes to describing every one)."""
     cls = type(config)
     hints = typing.get_type_hints(cls)
     out: list[Leaf] = []
@@ -81,10 +74,10 @@ def leaves(config: Any, prefix: str = "", *, docs: Mapping[str, ParamDoc] | None
         name = f"{prefix}{f.name}"
         value = getattr(config, f.name)
         if dataclasses.is_dataclass(value):
-            out.extend(leaves(value, f"{name}.", docs=docs))
+            out.extend(leaves(value, f"{name}."))
             continue
         kind, array = _field_kind(cls, f.name, hints[f.name])
-        doc = (docs or {}).get(name) or ParamDoc(f"{cls.__name__}.{f.name}")
+        doc = spec_of(f) or ParamSpec(f"{cls.__name__}.{f.name}")
         out.append(Leaf(name, cls.__name__, kind, array, value, doc))
     return out
 
@@ -191,8 +184,8 @@ def describe(leaves_: Iterable[Leaf]) -> str:
     for leaf in leaves_:
         doc = leaf.doc
         extra = []
-        if doc.low is not None:
-            extra.append(f"range {doc.low}..{doc.high}")
+        if doc.bounded:
+            extra.append(f"range {doc.range_text().replace(' .. ', '..')}")
         if doc.choices:
             extra.append(f"one of {', '.join(doc.choices)}")
         if doc.dynamic:
@@ -243,12 +236,6 @@ def _markdown_cell(text: str) -> str:
     return text.replace("<", "&lt;").replace(">", "&gt;").replace("\n", " ")
 
 
-def _markdown_number(value: float) -> str:
-    """A range bound as written: 1000000 rather than 1e+06, 0.5 as 0.5."""
-    number = float(value)
-    return str(int(number)) if number.is_integer() and abs(number) < 1e15 else repr(number)
-
-
 def to_markdown(leaves_: Iterable[Leaf]) -> str:
     """Markdown tables of the leaves (the docs site's parameter pages): one section per group (the name's
     first part; names without a dot under "Top-level parameters"), in order of first use; each row gives
@@ -272,12 +259,7 @@ def to_markdown(leaves_: Iterable[Leaf]) -> str:
             default = json.dumps(list(leaf.default) if leaf.array else leaf.default)
             default = f"`{default}`" if "`" not in default and "|" not in default else _markdown_cell(default)
             kind = f"{leaf.kind.__name__}[]" if leaf.array else leaf.kind.__name__
-            if doc.choices:
-                accepted = ", ".join(f"`{choice}`" for choice in doc.choices)
-            elif doc.low is not None and doc.high is not None:
-                accepted = f"{_markdown_number(doc.low)} .. {_markdown_number(doc.high)}"
-            else:
-                accepted = ""
+            accepted = doc.range_text()
             lines.append(f"| `{leaf.name}` | {default} | {kind} | {accepted} | {'yes' if doc.dynamic else ''} "
                          f"| {_markdown_cell(doc.description)} |")
         lines.append("")

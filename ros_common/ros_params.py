@@ -14,17 +14,20 @@ from .params import Leaf, renamed_value
 
 
 def descriptor(leaf: Leaf) -> ParameterDescriptor:
+    """The leaf's ROS descriptor, from its field's metadata: description, read-only unless dynamic, the
+    accepted strings, and the range ``lo .. hi`` of a scalar number when both bounds are given (an open
+    bound is refused when the config is built, which a ROS range cannot say)."""
     doc = leaf.doc
     desc = ParameterDescriptor(
         description=doc.description,
         read_only=not doc.dynamic,
         additional_constraints=f"one of: {', '.join(doc.choices)}" if doc.choices else "",
     )
-    if doc.low is not None and doc.high is not None and not leaf.array:
+    if doc.lo is not None and doc.hi is not None and not leaf.array:
         if leaf.kind is float:
-            desc.floating_point_range = [FloatingPointRange(from_value=float(doc.low), to_value=float(doc.high))]
+            desc.floating_point_range = [FloatingPointRange(from_value=float(doc.lo), to_value=float(doc.hi))]
         elif leaf.kind is int:
-            desc.integer_range = [IntegerRange(from_value=int(doc.low), to_value=int(doc.high), step=1)]
+            desc.integer_range = [IntegerRange(from_value=int(doc.lo), to_value=int(doc.hi), step=1)]
     return desc
 
 

@@ -6,6 +6,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
+from lcpr_common.params import check_fields, param
+
 from ..errors import VerificationError
 
 REGISTRATIONS: tuple[str, ...] = ("GICP", "PLANE_ICP", "VGICP")
@@ -21,16 +23,17 @@ class CloudConfig:
     ``min_range`` (straight-line distance from the sensor) are left out.
     """
 
-    voxel: float = 0.4  # m, voxel-grid downsampling (centroid per voxel)
+    voxel: float = param(0.4, "m, voxel size of the compact keyframe cloud kept in the map", lo=0.05, hi=5.0)
     # cap per keyframe after voxelisation (evenly spaced subset); thinning a 360 deg scan further leaves its
-    # surfaces too sparse for the overlap test (raw KITTI scans from the true pose: overlap 0.25-0.46 at 3072,
-    # 0.47-0.67 at 8192); the fine registration runs on about verify.fine_points of them
-    max_points: int = 8192
-    min_range: float = 1.0  # m: drops the ego vehicle / operator
-    max_range: float = 80.0  # m (<= 327 m: int16 centimetres)
+    # surfaces too sparse for the overlap test (docs/verification.md, "Raw 360-degree scans"); the fine
+    # registration runs on about verify.fine_points of them
+    max_points: int = param(8192, "points kept per keyframe cloud (6 bytes each)", lo=100, hi=1_000_000)
+    min_range: float = param(1.0, "m: nearer points (the ego vehicle, the operator) are left out", lo=0.0)
+    max_range: float = param(80.0, "m: farther points are left out (at most 327: int16 centimetres)", lo=0.0,
+                             lo_open=True)
 
     def __post_init__(self) -> None:
-        _positive(self, "voxel", "max_points", "max_range")
+        check_fields(self, error=VerificationError, prefix="verify.cloud.")
         if not 0.0 <= self.min_range < self.max_range:
             raise VerificationError(f"cloud min_range={self.min_range!r}, max_range={self.max_range!r}; "
                                     "accepted: 0 <= min_range < max_range")
@@ -82,88 +85,97 @@ class VerifierConfig:
     never on the drives docs/verification.md reports as held out.
     """
 
-    enabled: bool = True
+    enabled: bool = param(True, "register each candidate's cloud against the query's and publish verified loops "
+                                "only; false = publish the nearest descriptor unchecked", dynamic=True)
     cloud: CloudConfig = field(default_factory=CloudConfig)
-    registration: str = "GICP"
-    num_threads: int = 1  # OpenMP threads of small_gicp; 1 is fastest beside the network on 2 cores
-    processes: int = 2  # worker processes verifying a keyframe's candidates side by side (0: in the caller's)
-    min_points: int = 200  # fewer points (after downsampling) in either cloud: not verifiable
+    registration: str = param("GICP", "small_gicp registration", choices=REGISTRATIONS, dynamic=True)
+    # OpenMP threads of small_gicp; 1 is fastest beside the network on 2 cores
+    num_threads: int = param(1, "registration threads", lo=1, hi=64, dynamic=True)
+    processes: int = param(2, "worker processes verifying a keyframe's candidates side by side (each keeps its "
+                              "own prepared clouds); 0 = in the node's process", lo=0, hi=64, dynamic=True)
+    min_points: int = param(200, "fewer points (after downsampling) in either cloud: not verifiable", lo=1)
     # initial guess
-    yaw_hypotheses: int = 4  # Scan Context shifts tried
-    bev_cell: float = 1.0  # m, bird's-eye-view cell of the x/y cross-correlation
-    bev_extent: float = 48.0  # m, half width of the bird's-eye view
+    yaw_hypotheses: int = param(4, "Scan Context shifts tried as initial yaws", lo=1)
+    bev_cell: float = param(1.0, "m, bird's-eye-view cell of the x/y cross-correlation", lo=0.0, lo_open=True)
+    bev_extent: float = param(48.0, "m, half width of the bird's-eye view", lo=0.0, lo_open=True)
     # the views are made of an evenly spaced sample of about this many points; 0: all (the default: a sample moves
-    # the x/y peaks, which won and lost walk_loop pairs alike)
-    bev_points: int = 0
-    registrations: int = 2  # BEV hypotheses registered at the coarse level (with 2 more starts, see starts())
+    # the x/y peaks for a small saving: docs/verification.md, "Cost")
+    bev_points: int = param(0, "points the bird's-eye views are made of (an evenly spaced sample); 0 = all", lo=0)
+    # with 2 more starts, see starts()
+    registrations: int = param(2, "bird's-eye-view hypotheses registered at the coarse level", lo=1)
     # registration
-    coarse_voxel: float = 2.0  # m, first voxel tried for the coarse stage's clouds ...
-    coarse_points: int = 600  # ... rescaled so that each keeps about this many points (any field of view)
-    coarse_accept: float = 0.45  # a start whose coarse overlap reaches this ends the search over starts
-    early_reject: float = 0.8  # overlap at the coarse pose under early_reject * min_fitness: rejected at once
-    coarse_distance: float = 3.0  # m, max correspondence distance of the coarse stage
-    fine_distance: float = 1.0  # m, of the fine stage
-    coarse_iterations: int = 15  # a right start converges in a few; a narrow field of view needs more (verify_tune.py)
+    coarse_voxel: float = param(2.0, "m, first voxel tried for the coarse stage's clouds (rescaled to keep about "
+                                     "verify.coarse_points)", lo=0.0, lo_open=True)
+    coarse_points: int = param(600, "points each coarse-stage cloud keeps about (any field of view)", lo=1)
+    coarse_accept: float = param(0.45, "a start whose coarse overlap reaches this ends the search over starts",
+                                 lo=0.0)
+    early_reject: float = param(0.8, "an overlap at the coarse pose under this times verify.min_fitness is "
+                                     "rejected at once", lo=0.0)
+    coarse_distance: float = param(3.0, "m, max correspondence distance of the coarse stage", lo=0.0, lo_open=True)
+    fine_distance: float = param(1.0, "m, max correspondence distance of the fine stage", lo=0.0, lo_open=True)
+    # a right start converges in a few; a narrow field of view needs more (verify_tune.py)
+    coarse_iterations: int = param(15, "iterations of the coarse stage at most", lo=1)
     # the coarse stage stops once an iteration moves the pose less than this (small_gicp's own default is 1 mm /
     # 0.1 deg: far finer than 2 m voxels resolve; the fine stage refines the pose from there)
-    coarse_epsilon_m: float = 0.03
-    coarse_epsilon_deg: float = 0.5
-    max_iterations: int = 10  # of the fine stage (it starts from a converged coarse pose)
-    fine_points: int = 3072  # the fine stage registers clouds resampled to about this many
+    coarse_epsilon_m: float = param(0.03, "m: the coarse stage stops once an iteration moves the pose less than "
+                                          "this", lo=0.0)
+    coarse_epsilon_deg: float = param(0.5, "deg: the coarse stage stops once an iteration turns the pose less "
+                                           "than this", lo=0.0)
+    max_iterations: int = param(10, "iterations of the fine stage at most (it starts from a converged coarse "
+                                    "pose)", lo=1)
+    fine_points: int = param(3072, "points the fine stage's clouds are resampled to, about", lo=1)
     # the overlap is estimated from an evenly spaced sample of each cloud's points (every k-th, at most about
     # this many) searched in the other's full cloud (dense surfaces; a sparse sample is unbiased); 0 reads all
-    overlap_points: int = 3072
+    overlap_points: int = param(3072, "points of each cloud sampled (evenly) for the overlap estimate; 0 = all",
+                                lo=0)
     # a sampled overlap within this of min_fitness is read again from every point: the verdict on a borderline
-    # pair is the full overlap's (walk_loop pairs at 0.475-0.479 fell 0.005 under min_fitness from a sample)
-    overlap_recheck: float = 0.03
-    coarse_overlap_points: int = 512  # the same for ranking the coarse results (every 8th point at least)
+    # pair is the full overlap's, never a sample's
+    overlap_recheck: float = param(0.03, "a sampled overlap within this of verify.min_fitness is read again from "
+                                         "every point", lo=0.0)
+    coarse_overlap_points: int = param(512, "points sampled for the overlap that ranks the coarse results (every "
+                                            "8th point at least); 0 = all", lo=0)
     # acceptance
-    inlier_distance: float = 0.6  # m, nearest-neighbour reach of an inlier
-    plane_distance: float = 0.1  # m, its distance to the neighbour's local plane
-    min_fitness: float = 0.475  # benchmarks/recipes/verify_tune.py: <= 0.1 % of validation false pairs pass
-    max_rmse: float = 0.2  # m
-    max_correction_m: float = 1.0  # fine vs coarse pose; validation true pairs moved <= 0.7 m, 1.7 deg
-    max_correction_deg: float = 5.0
-    min_constraint: float = 0.02  # 0..1/3 point-to-plane observability (verify_tune.py); a plane, a sphere ~0
-    # free space (docs/verification.md; chosen on the validation city seed 3, the KITTI scans and the Livox validation
-    # halves: their true pairs reach 0.016, their wrong poses 0.096 at least): a pair whose points lie in the other
-    # scan's free space beyond this share, on either side, is refused as "contradicted"; 1 = never
-    max_contradiction: float = 0.05
-    # ambiguity (docs/verification.md; chosen on the validation city seed 3 and the Livox validation halves): a pair
+    inlier_distance: float = param(0.6, "m, nearest-neighbour reach of an inlier", lo=0.0, lo_open=True)
+    plane_distance: float = param(0.1, "m, an inlier's distance to its neighbour's local plane at most", lo=0.0,
+                                  lo_open=True)
+    # benchmarks/recipes/verify_tune.py: <= 0.1 % of validation false pairs pass
+    min_fitness: float = param(0.475, "overlap (0..1) a registration needs to be accepted", lo=0.0, hi=1.0,
+                               dynamic=True)
+    max_rmse: float = param(0.2, "m, inlier RMSE of an accepted registration at most", lo=0.0, lo_open=True)
+    # fine vs coarse pose; set above the largest correction of a validation true pair (docs/verification.md)
+    max_correction_m: float = param(1.0, "m the fine stage may move the pose from the coarse stage's result",
+                                    lo=0.0, lo_open=True)
+    max_correction_deg: float = param(5.0, "deg the fine stage may turn the pose from the coarse stage's result",
+                                      lo=0.0, lo_open=True)
+    # 0..1/3 point-to-plane observability (verify_tune.py); a plane, a sphere ~0
+    min_constraint: float = param(0.02, "smallest per-inlier Hessian eigenvalue (rejects planes, corridors, "
+                                        "sphere shells)", lo=0.0, hi=math.inf, dynamic=True)
+    # free space (docs/verification.md, "Free space": chosen on validation data between its true pairs' largest
+    # share and its wrong poses' smallest): a pair whose points lie in the other scan's free space beyond this
+    # share, on either side, is refused as "contradicted"; 1 = never
+    max_contradiction: float = param(0.05, "share (0..1) of either cloud's points that may lie where the other "
+                                           "sensor's beams passed through (its free space) before the pair is "
+                                           "refused as contradicted, a look-alike place; 1 = no free-space test",
+                                     lo=0.0, hi=1.0, dynamic=True)
+    # ambiguity (docs/verification.md, "Ambiguous poses"; chosen on validation data): a pair
     # about to be accepted whose translation part of the constraint is under ambiguity_constraint (0: never) is
     # registered from its other starts too; another pose more than ambiguity_distance m away reaching
     # ambiguity_ratio x its fitness refuses it ("ambiguous": the clouds slide along a street or a corridor)
-    ambiguity_constraint: float = 0.06
-    ambiguity_ratio: float = 0.6
-    ambiguity_distance: float = 5.0
+    ambiguity_constraint: float = param(0.06, "translation constraint (0..1/3) under which a pair about to be "
+                                              "accepted is also registered from its other starts (0 = never)",
+                                        lo=0.0, hi=1.0, dynamic=True)
+    ambiguity_ratio: float = param(0.6, "another pose reaching this share of the accepted fitness refuses the "
+                                        "pair as ambiguous", lo=0.01, hi=1.0, dynamic=True)
+    ambiguity_distance: float = param(5.0, "m: how far another pose must lie from the accepted one to count as "
+                                           "an alternative", lo=0.1, hi=1000.0, dynamic=True)
     # covariance: inv(Hessian) * residual variance factor * inflation, floored per axis
-    covariance_inflation: float = 10.0
-    min_sigma_m: float = 0.02
-    min_sigma_deg: float = 0.2
+    covariance_inflation: float = param(10.0, "factor on the registration's covariance (inverse Hessian times "
+                                              "the residual variance)", lo=0.0, lo_open=True)
+    min_sigma_m: float = param(0.02, "m: floor of the covariance's translation std devs", lo=0.0)
+    min_sigma_deg: float = param(0.2, "deg: floor of the covariance's rotation std devs", lo=0.0)
 
     def __post_init__(self) -> None:
-        if self.registration not in REGISTRATIONS:
-            raise VerificationError(f"verify.registration={self.registration!r}; accepted: {', '.join(REGISTRATIONS)}")
-        _positive(self, "num_threads", "min_points", "yaw_hypotheses", "bev_cell", "bev_extent", "registrations",
-                  "coarse_voxel", "coarse_points", "fine_points", "coarse_distance", "fine_distance",
-                  "coarse_iterations", "max_iterations", "inlier_distance", "plane_distance", "max_rmse",
-                  "max_correction_m", "max_correction_deg", "covariance_inflation", "ambiguity_distance",
-                  "ambiguity_ratio")
-        _non_negative(self, "coarse_accept", "early_reject", "min_constraint", "ambiguity_constraint",
-                      "min_sigma_m", "min_sigma_deg",
-                      "coarse_epsilon_m", "coarse_epsilon_deg", "overlap_recheck")
-        for name in ("overlap_points", "coarse_overlap_points", "bev_points"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-                raise VerificationError(f"verify.{name}={value!r}; accepted: an integer >= 0 (0: every point)")
-        if isinstance(self.processes, bool) or not isinstance(self.processes, int) or not 0 <= self.processes <= 64:
-            raise VerificationError(f"verify.processes={self.processes!r}; accepted: an integer 0..64 (0: verify in "
-                                    "the detector's own process)")
-        if isinstance(self.max_contradiction, bool) or not 0.0 <= self.max_contradiction <= 1.0:
-            raise VerificationError(f"verify.max_contradiction={self.max_contradiction!r}; accepted: 0 <= "
-                                    "max_contradiction <= 1 (1 = no free-space test)")
-        if not 0.0 <= self.min_fitness <= 1.0:
-            raise VerificationError(f"verify.min_fitness={self.min_fitness!r}; accepted: 0 <= min_fitness <= 1")
+        check_fields(self, error=VerificationError, prefix="verify.")
         if self.bev_extent / self.bev_cell > 1024:
             raise VerificationError(f"verify.bev_extent / verify.bev_cell = {self.bev_extent / self.bev_cell:.0f} "
                                     "cells; accepted: at most 1024 (a larger view is slower, not better)")
@@ -184,17 +196,3 @@ def with_settings(config: VerifierConfig, items: Sequence[str]) -> VerifierConfi
                                     f"{', '.join(sorted(numeric))}")
         values[name] = value
     return replace(config, **values)
-
-
-def _positive(obj: object, *names: str) -> None:
-    for name in names:
-        value = getattr(obj, name)
-        if isinstance(value, bool) or not value > 0:
-            raise VerificationError(f"verify.{name}={value!r}; it must be > 0")
-
-
-def _non_negative(obj: object, *names: str) -> None:
-    for name in names:
-        value = getattr(obj, name)
-        if isinstance(value, bool) or not value >= 0:
-            raise VerificationError(f"verify.{name}={value!r}; it must be >= 0")

@@ -13,7 +13,7 @@ Neighbours are taken nearest first (path length along the odometry) while within
 the centre on their side, at most ``max_keyframes`` keyframes in all; the stitched cloud, in the centre
 keyframe's LiDAR frame, is voxelised again (``voxel``) and capped (``max_points``) so that its cost
 stays bounded. ``mode``: "off", "on", or "auto" (on for a keyframe whose own cloud covers less than
-``auto_fov_deg`` of azimuth, a narrow field of view; a 360 deg scan is verified alone, as before).
+``auto_fov_deg`` of azimuth, a narrow field of view; a 360 deg scan is verified alone).
 """
 from __future__ import annotations
 
@@ -22,6 +22,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+
+from lcpr_common.params import check_fields, param
 
 from ..errors import VerificationError
 from ..geometry import invert, pose_from_xyz_rpy
@@ -40,31 +42,32 @@ _STITCHED_RANGE = 327.0  # m: no crop of the stitched cloud beyond the int16 cen
 class SubmapConfig:
     """Whether and how far keyframe clouds are stitched into local submaps before verification."""
 
-    mode: str = "auto"  # off | on | auto (on for a keyframe whose cloud covers < auto_fov_deg of azimuth)
-    # travel_m / max_keyframes: chosen on the Livox validation halves (docs/verification.md, Local submaps): 5
-    # keyframes accepted the most true pairs with at most 0.1 % of the far pairs; 9 let 1 % through
-    travel_m: float = 2.0  # m of odometry path from the centre keyframe a neighbour may be, on each side
-    max_keyframes: int = 5  # keyframes stitched at most, the centre included (nearest by path first)
-    max_gap_s: float = 30.0  # s between consecutive keyframes beyond which they are not one run (the walk stops)
-    voxel: float = 0.4  # m, voxel grid of the stitched cloud (centroids)
-    max_points: int = 8192  # cap of the stitched cloud (an evenly spaced subset)
-    auto_fov_deg: float = 180.0  # deg of azimuth under which "auto" counts a keyframe's field of view as narrow
-    lidar_xyz: tuple[float, ...] = (0.0, 0.0, 0.0)  # m: base_T_lidar, the LiDAR origin in the odometry's base
-    lidar_rpy: tuple[float, ...] = (0.0, 0.0, 0.0)  # rad: its roll, pitch, yaw (R = Rz Ry Rx, as URDF and tf2)
+    mode: str = param("auto", "verify local submaps instead of single scans: the query with its previous "
+                              "keyframes, each match with its neighbours, stitched by the odometry; auto = on for a "
+                              "keyframe whose cloud covers less than submap.auto_fov_deg of azimuth (a narrow field "
+                              "of view such as a Livox Avia's), off for 360 deg scans", choices=SUBMAP_MODES,
+                      dynamic=True)
+    # travel_m / max_keyframes: chosen on the Livox validation halves (docs/verification.md, "Local submaps"):
+    # the most true pairs accepted with at most 0.1 % of the far pairs
+    travel_m: float = param(2.0, "m of odometry path a neighbour may be from the centre keyframe, on each side",
+                            lo=0.01, hi=1000.0, dynamic=True)
+    max_keyframes: int = param(5, "keyframes stitched into one submap at most, the centre included (nearest by "
+                                  "path first)", lo=1, hi=1000, dynamic=True)
+    max_gap_s: float = param(30.0, "s between consecutive keyframes beyond which they are not stitched (another "
+                                   "run)", lo=0.001, hi=1e6, dynamic=True)
+    voxel: float = param(0.4, "m, voxel grid of the stitched cloud", lo=0.05, hi=5.0, dynamic=True)
+    max_points: int = param(8192, "points of a stitched cloud at most (registration time grows with them)", lo=100,
+                            hi=1_000_000, dynamic=True)
+    auto_fov_deg: float = param(180.0, "deg of azimuth under which submap.mode auto counts a keyframe's field of "
+                                       "view as narrow", lo=0.0, hi=360.0, lo_open=True, dynamic=True)
+    lidar_xyz: tuple[float, ...] = param((0.0, 0.0, 0.0), "m: the LiDAR (the clouds' frame) in the odometry's "
+                                                          "child frame (base_T_lidar), to place neighbours' clouds",
+                                         dynamic=True)
+    lidar_rpy: tuple[float, ...] = param((0.0, 0.0, 0.0), "rad: roll, pitch, yaw of the LiDAR in the odometry's "
+                                                          "child frame (R = Rz Ry Rx)", dynamic=True)
 
     def __post_init__(self) -> None:
-        if self.mode not in SUBMAP_MODES:
-            raise VerificationError(f"submap.mode={self.mode!r}; accepted: {', '.join(SUBMAP_MODES)}")
-        for name in ("travel_m", "voxel", "max_gap_s"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise VerificationError(f"submap.{name}={value!r}; it must be a finite number > 0")
-        for name, least in (("max_keyframes", 1), ("max_points", 100)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < least:
-                raise VerificationError(f"submap.{name}={value!r}; it must be an integer >= {least}")
-        if not 0.0 < self.auto_fov_deg <= 360.0:
-            raise VerificationError(f"submap.auto_fov_deg={self.auto_fov_deg!r}; accepted: 0 < auto_fov_deg <= 360")
+        check_fields(self, error=VerificationError, prefix="submap.")
         for name in ("lidar_xyz", "lidar_rpy"):
             value = tuple(getattr(self, name))
             if len(value) != 3 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in value):

@@ -283,7 +283,7 @@ def test_non_finite_or_integer_descriptors_and_mismatched_metadata_are_refused()
 
 
 def test_bad_configs_name_the_accepted_values() -> None:
-    with pytest.raises(MapError, match="'ivf' is not supported; accepted: flat, hnsw"):
+    with pytest.raises(MapError, match="index='ivf'; accepted: flat, hnsw"):
         MapConfig(index="ivf")
     with pytest.raises(MapError, match="dim=0"):
         MapConfig(dim=0)

@@ -74,9 +74,9 @@ def test_the_prior_up_picks_the_walls_of_a_strongly_tilted_sensor() -> None:
 @pytest.mark.parametrize("make, message", [
     (lambda: estimate_up(np.zeros((10, 2))), r"xyz of shape \(10, 2\); expected N x 3"),
     (lambda: estimate_up(np.zeros((10, 3)), prior_up=np.zeros(3)), r"prior_up=array.*expected a finite non-zero"),
-    (lambda: UpConfig(voxel=-1.0), r"up\.voxel=-1\.0; expected a finite number >= 0"),
-    (lambda: UpConfig(neighbours=2), r"up\.neighbours=2; expected an integer >= 3"),
-    (lambda: UpConfig(max_tilt_deg=90.0), r"up\.max_tilt_deg=90\.0; expected 0 < max_tilt_deg < 90"),
+    (lambda: UpConfig(voxel=-1.0), r"up\.voxel=-1\.0; accepted: 0 <= voxel <= 5"),
+    (lambda: UpConfig(neighbours=2), r"up\.neighbours=2; accepted: an integer 3\.\.200"),
+    (lambda: UpConfig(max_tilt_deg=90.0), r"up\.max_tilt_deg=90\.0; accepted: 0 < max_tilt_deg < 90"),
     (lambda: UpConfig(min_range=5.0, max_range=2.0), r"up\.max_range=2\.0 <= up\.min_range=5\.0"),
     (lambda: UpConfig(enabled="yes"), r"up\.enabled='yes'; expected true or false"),  # type: ignore[arg-type]
 ])

@@ -311,18 +311,18 @@ def test_an_initial_guess_that_is_not_a_rigid_transform_is_refused(verifier, wor
 
 # ---------------------------------------------------------------------- settings
 @pytest.mark.parametrize("make, pattern", [
-    (lambda: CloudConfig(voxel=-0.4), r"voxel=-0\.4; it must be > 0"),
-    (lambda: CloudConfig(max_points=0), r"max_points=0; it must be > 0"),
+    (lambda: CloudConfig(voxel=-0.4), r"verify\.cloud\.voxel=-0\.4; accepted: 0\.05 <= voxel <= 5"),
+    (lambda: CloudConfig(max_points=0), r"verify\.cloud\.max_points=0; accepted: an integer 100\.\.1000000"),
     (lambda: CloudConfig(max_range=400.0), r"max_range=400\.0 m; accepted: <= 327"),
     (lambda: CloudConfig(min_range=5.0, max_range=5.0),
      r"min_range=5\.0, max_range=5\.0; accepted: 0 <= min_range < max_range"),
     (lambda: VerifierConfig(min_fitness=1.5), r"verify\.min_fitness=1\.5; accepted: 0 <= min_fitness <= 1"),
     (lambda: VerifierConfig(min_fitness=-0.1), r"verify\.min_fitness=-0\.1; accepted"),
     (lambda: VerifierConfig(registration="FOO"), r"verify\.registration='FOO'; accepted: GICP, PLANE_ICP, VGICP"),
-    (lambda: VerifierConfig(num_threads=0), r"verify\.num_threads=0; it must be > 0"),
-    (lambda: VerifierConfig(num_threads=True), r"verify\.num_threads=True; it must be > 0"),
-    (lambda: VerifierConfig(max_rmse=float("nan")), r"verify\.max_rmse=nan; it must be > 0"),
-    (lambda: VerifierConfig(min_constraint=-1.0), r"verify\.min_constraint=-1\.0; it must be >= 0"),
+    (lambda: VerifierConfig(num_threads=0), r"verify\.num_threads=0; accepted: an integer 1\.\.64"),
+    (lambda: VerifierConfig(num_threads=True), r"verify\.num_threads=True; accepted: an integer 1\.\.64"),
+    (lambda: VerifierConfig(max_rmse=float("nan")), r"verify\.max_rmse=nan; accepted: max_rmse > 0"),
+    (lambda: VerifierConfig(min_constraint=-1.0), r"verify\.min_constraint=-1\.0; accepted: min_constraint >= 0"),
     (lambda: VerifierConfig(bev_cell=0.01), r"cells; accepted: at most 1024"),
 ], ids=["negative voxel", "no points", "max_range 400", "empty range", "min_fitness 1.5", "min_fitness -0.1",
         "registration FOO", "no threads", "threads True", "max_rmse nan", "negative constraint", "huge BEV"])

@@ -60,11 +60,13 @@ def test_the_parameter_pages_match_the_config_dataclasses(module: str) -> None:
 
 
 def test_a_parameter_table_cell_keeps_its_text_and_its_column() -> None:
-    from ros_common.params import Leaf, ParamDoc, to_markdown
+    from lcpr_common.params import ParamSpec
+    from ros_common.params import Leaf, to_markdown
 
-    doc = ParamDoc("a|b <c> [d] *e* under_score", 0, 2147483647, dynamic=True)
+    doc = ParamSpec("a|b <c> [d] *e* under_score", 0, 2147483647, dynamic=True)
     leaf = Leaf(name="group.name", owner="X", kind=int, array=False, default=3, doc=doc)
-    top = Leaf(name="plain", owner="X", kind=str, array=True, default=("x", "y"), doc=ParamDoc("p", choices=("x", "y")))
+    top = Leaf(name="plain", owner="X", kind=str, array=True, default=("x", "y"),
+               doc=ParamSpec("p", choices=("x", "y")))
     text = to_markdown([leaf, top])
     row = next(line for line in text.splitlines() if line.startswith("| `group.name`"))
     assert row == ("| `group.name` | `3` | int | 0 .. 2147483647 | yes | "

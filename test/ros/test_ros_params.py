@@ -11,7 +11,7 @@ import rclpy
 import yaml
 from rclpy.parameter import Parameter
 
-from lcpr_core.lcpr.detector import DetectorConfig, MatchConfig
+from lcpr_core.detector import DetectorConfig, MatchConfig
 from lcpr_ros.config import NodeConfig, SyncConfig
 from lcpr_ros.params import RENAMED, Settings, all_leaves, settings_from, settings_from_file
 from ros_common.errors import ConfigError

@@ -8,6 +8,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from lcpr_common.params import param
+
 from ...errors import InputShapeError, InvalidValueError
 from ...points import turn_cos_sin
 
@@ -40,11 +42,11 @@ class LidarGeometry:
     cloud about z so that x points forward; ``min_xy`` drops the ego box; ``max_range`` in m.
     """
 
-    fov_up_deg: float = 10.0
-    fov_down_deg: float = -30.0
-    yaw_offset_deg: float = 0.0
-    max_range: float = 80.0
-    min_xy: float = 2.0
+    fov_up_deg: float = param(10.0, "deg, top of the vertical field of view (model.lidar custom)")
+    fov_down_deg: float = param(-30.0, "deg, bottom of the vertical field of view (model.lidar custom)")
+    yaw_offset_deg: float = param(0.0, "deg about z that turns the cloud's x forward (model.lidar custom)")
+    max_range: float = param(80.0, "m, farther points are left out (model.lidar custom)")
+    min_xy: float = param(2.0, "m, half size of the ego box left out (model.lidar custom)")
 
     def __post_init__(self) -> None:
         values = dataclasses.astuple(self)
