@@ -15,7 +15,8 @@ than ``match.exclude_recent_s`` seconds or among the last
 ``match.exclude_recent_count``. Entries of a map loaded from an earlier session
 are never excluded by time (their stamps belong to another clock run).
 
-``match.method`` picks what proposes those candidates: ``lcpr`` (the descriptor, default),
+``match.method`` picks what proposes those candidates (:mod:`lcpr_core.lcpr.proposers`: one module per
+method, registered by name): ``lcpr`` (the descriptor, default),
 ``scan_context`` (the ``match.top_k`` nearest Scan Contexts of the keyframes' clouds,
 :class:`~lcpr_core.scan_context.ScanContextRows`, under ``match.sc_max_distance``) or ``fused``
 (both lists, the descriptor's first). The exclusion rules are the same for all; the network runs
@@ -27,7 +28,7 @@ of its cloud in the map; each candidate is registered against the query's cloud
 (:class:`~lcpr_core.verification.GeometricVerifier`) and gets ``verified``,
 ``fitness``, ``match_T_query`` and ``covariance``. ``Result.loop`` is then the
 verified candidate with the best fitness (None when none passed), not the nearest
-descriptor. With verification off, ``Result.loop`` is the nearest candidate, as before.
+descriptor. With verification off, ``Result.loop`` is the nearest candidate.
 
 Submaps (``submap.*``, :mod:`lcpr_core.verification.submap`; "auto" by default: on for a keyframe
 whose cloud covers less than 180 deg of azimuth): the query's cloud is verified with its previous
@@ -42,16 +43,17 @@ import logging
 import time
 from collections.abc import Callable, Hashable, Sequence
 from dataclasses import dataclass, field
-from typing import TypedDict, cast
+from typing import Any, TypedDict
 
 import numpy as np
+
+from lcpr_common.params import check_fields, param
 
 from ..descriptor_map import DescriptorMap, MapConfig, Match
 from ..errors import InvalidValueError, MapSchemaError, VerificationError
 from ..exclusion import matchable_prefix
 from ..keyframes import KeyframeConfig, keyframe_reason
 from ..pretrained import AUTO_DISTANCE, effective_max_distance, operating_threshold, resolve_weights
-from ..scan_context import ScanContextConfig, ScanContextRows
 from ..up import UpConfig, estimate_up
 from ..verification import (
     GeometricVerifier,
@@ -66,14 +68,22 @@ from ..verification.processes import CloudRef, VerifierProcesses, shared_process
 from ..verification.submap import build_submap, submap_rows
 from .describer import Describer, ModelConfig
 from .preprocess.camera import CameraInput
+from .proposers import (
+    BUILT_IN_METHODS,
+    CandidateProposer,
+    KeyframeInput,
+    ProposerSetup,
+    SearchRequest,
+    check_method,
+    make_proposer,
+)
 
 log = logging.getLogger(__name__)
 
 _DETECTOR_TOKENS = itertools.count()
 PREPARED_CACHE = 64  # prepared map clouds kept for the next queries (consecutive queries share candidates)
 #: match.method: what proposes the candidates (docs/lidar_only.md compares them on real LiDARs)
-MATCH_METHODS = ("lcpr", "scan_context", "fused")
-SC_CANDIDATES_PER_K = 5  # Scan Context: ring-key nearest neighbours compared in full, per candidate wanted
+MATCH_METHODS = BUILT_IN_METHODS  # of lcpr_core.lcpr.proposers' registry; a plug-in's name is accepted too
 _RIGID_TOLERANCE = 1e-4  # a pose whose rotation block is farther from orthonormal is stored as a position only
 
 
@@ -86,40 +96,40 @@ class _SubmapArgs(TypedDict):
     cloud: Callable[[int], np.ndarray | None]
 
 
-def _non_negative(obj: object, *names: str) -> None:
-    for name in names:
-        value = getattr(obj, name)
-        if not value >= 0:
-            raise InvalidValueError(f"{type(obj).__name__}.{name}={value!r}; it must be >= 0")
-
-
 @dataclass(frozen=True)
 class MatchConfig:
-    top_k: int = 10  # candidates per query (all of them are verified)
-    # descriptor L2 distance (unit vectors: 0..2) a candidate must be under; AUTO_DISTANCE (-1): 1.0 with
-    # verification (every top-k candidate is checked), else the weights file's operating threshold (bundled 0.70)
-    max_distance: float = AUTO_DISTANCE
-    exclude_recent_s: float = 30.0  # this session's keyframes newer than this are not matched
-    exclude_recent_count: int = 0  # and neither are the last N keyframes (0 = off)
-    method: str = "lcpr"  # what proposes the candidates: lcpr | scan_context | fused (MATCH_METHODS)
-    sc_max_distance: float = 1.0  # Scan Context distance (0..1) a scan_context / fused candidate must be under
+    top_k: int = param(10, "candidates per query", lo=1, hi=1000, dynamic=True)
+    # the node's range stops at 2 (unit vectors); the Python API also takes a larger distance (the evaluation
+    # collects every candidate with one just above 2), so __post_init__ checks this field itself
+    max_distance: float = param(AUTO_DISTANCE, "descriptor L2 distance a candidate must be under (unit vectors: "
+                                               "0..2); -1 = automatic: 1.0 with verification (every top-k candidate "
+                                               "is checked), without it the weights file's operating threshold "
+                                               "(bundled: 0.70; 1.0 for files without one)", lo=AUTO_DISTANCE,
+                                hi=2.0, dynamic=True)
+    exclude_recent_s: float = param(30.0, "this session's keyframes newer than this many seconds are not matched",
+                                    lo=0.0, hi=1e9, dynamic=True)
+    exclude_recent_count: int = param(0, "and neither are the last N keyframes; 0 = off", lo=0, hi=2**31 - 1,
+                                      dynamic=True)
+    method: str = param("lcpr", "what proposes the candidates: lcpr (the descriptor), scan_context (the top_k "
+                                "nearest Scan Contexts of the keyframes' clouds) or fused (both lists); the network "
+                                "runs for all (docs/lidar_only.md compares them on real LiDARs)",
+                        choices=MATCH_METHODS)
+    sc_max_distance: float = param(1.0, "Scan Context distance (0..1) a scan_context / fused candidate must be "
+                                        "under; 1 = every top-k one (verification decides)", lo=0.0, hi=1.0,
+                                   dynamic=True)
 
     def __post_init__(self) -> None:
-        if self.top_k < 1:
-            raise InvalidValueError(f"match.top_k={self.top_k}; it must be at least 1")
-        if self.method not in MATCH_METHODS:
-            raise InvalidValueError(f"match.method={self.method!r}; accepted: {', '.join(MATCH_METHODS)}")
-        if not 0.0 <= self.sc_max_distance <= 1.0:
-            raise InvalidValueError(f"match.sc_max_distance={self.sc_max_distance!r}; accepted: 0 <= distance <= 1")
+        # method: any name registered now, a plug-in's too (its choices list the built-in ones)
+        check_fields(self, error=InvalidValueError, prefix="match.", skip=("max_distance", "method"))
+        check_method(self.method)
         if self.max_distance != AUTO_DISTANCE and not self.max_distance >= 0:
             raise InvalidValueError(f"match.max_distance={self.max_distance!r}; accepted: a distance >= 0, or "
                                     f"{AUTO_DISTANCE} for the weights file's operating threshold")
-        _non_negative(self, "exclude_recent_s", "exclude_recent_count")
 
 
 @dataclass(frozen=True)
 class SensorConfig:
-    require_lidar: bool = True  # no cloud -> no keyframe; False: an empty range image is used
+    require_lidar: bool = param(True, "no cloud -> no keyframe; false: an empty range image is used")
 
 
 @dataclass(frozen=True)
@@ -132,7 +142,7 @@ class DetectorConfig:
     verify: VerifierConfig = field(default_factory=VerifierConfig)
     submap: SubmapConfig = field(default_factory=SubmapConfig)  # local submaps verified instead of single scans
     up: UpConfig = field(default_factory=UpConfig)  # each keyframe's up from its walls (Result.up), for the back end
-    session: str = "session"  # source name stored with this run's keyframes
+    session: str = param("session", "source name stored with this run's keyframes")
 
 
 @dataclass(frozen=True)
@@ -225,7 +235,9 @@ class LoopDetector:
         self._token = next(_DETECTOR_TOKENS)  # first element of its cloud keys: shared workers keep detectors apart
         self._submap_config = config.submap  # what the prepared clouds were stitched with
         self.weights_threshold = operating_threshold(resolve_weights(config.model.weights))  # the file's, or None
-        self.scan_contexts = self._prior_scan_contexts() if config.match.method != "lcpr" else None  # row-aligned
+        #: what proposes the candidates (match.method; read once: the method is fixed while a detector runs)
+        self.proposer: CandidateProposer[Any] = make_proposer(config.match.method,
+                                                              ProposerSetup(self.map, config.match))
 
     def _checked(self, prior: DescriptorMap) -> DescriptorMap:
         """A prior map whose descriptors this describer can search: made by the same weights (whitening, turn
@@ -299,7 +311,7 @@ class LoopDetector:
         try:
             descriptors = self._describe(keyframes)
         except Exception:
-            self._kf_stamp, self._last_position = decided  # nothing was stored: keyframing goes on as before
+            self._kf_stamp, self._last_position = decided  # nothing was stored: keyframing state restored
             raise
         return DescribedBatch(results, keyframes, descriptors)
 
@@ -332,20 +344,18 @@ class LoopDetector:
     def _store(self, frame: Frame, result: Result, desc: np.ndarray) -> None:
         """Match a described keyframe against the map before it, add it, verify its candidates."""
         points = frame.points if frame.points is not None else np.zeros((0, 3), np.float32)
-        context = None
-        if self.scan_contexts is not None:
-            tic = time.perf_counter()
-            context = self.scan_contexts.describe(points)
-            result.timings["scan_context"] = time.perf_counter() - tic
         tic = time.perf_counter()
-        hits = self._search(desc, frame.stamp, context=context)
+        query = self.proposer.describe(KeyframeInput(desc, points, frame.stamp, frame.pose))
+        if self.proposer.stage is not None:
+            result.timings[self.proposer.stage] = time.perf_counter() - tic
+        tic = time.perf_counter()
+        hits = self._search(query, frame.stamp)
         result.timings["search"] = time.perf_counter() - tic
 
         tic = time.perf_counter()
         (new_id,) = self.map.add(desc, stamps=frame.stamp, poses=_map_pose(frame.pose), sources=self.config.session)
         result.keyframe_id = int(new_id)
-        if self.scan_contexts is not None:
-            self.scan_contexts.add(context)
+        self.proposer.add(query)
         degraded = bool(result.missing_cameras)
         result.candidates = [
             Candidate(int(new_id), h.id, frame.stamp, h.stamp, h.distance, rank, h.pose, degraded)
@@ -520,70 +530,14 @@ class LoopDetector:
                                last_position=self._last_position, min_interval=self.config.keyframe.min_interval,
                                min_distance=self.config.keyframe.min_distance)
 
-    def _search(self, desc: np.ndarray, stamp: float, *, context: np.ndarray | None = None) -> list[Match]:
-        """Top-k map entries by ``match.method`` (fused: the descriptor's, then Scan Context's not among them),
-        this session's recent keyframes left out.
-
-        Excluded keyframes are the newest rows of the map, so the search asks for that
-        many more hits and drops them: exact however many are excluded.
-        """
-        cfg = self.config.match
+    def _search(self, query: object, stamp: float) -> list[Match]:
+        """The proposer's top-k map entries for ``query``, this session's recent keyframes left out (the same
+        exclusion rules for every ``match.method``: the excluded keyframes are the map's newest rows)."""
         excluded = self._excluded_count(stamp)
         eligible = len(self.map) - excluded
         if eligible <= 0:
             return []
-        hits = self._search_descriptor(desc, excluded, eligible) if cfg.method != "scan_context" else []
-        if cfg.method != "lcpr" and context is not None:
-            seen = {h.id for h in hits}
-            hits += [h for h in self._search_scan_context(context, eligible) if h.id not in seen]
-        return hits
-
-    def _search_descriptor(self, desc: np.ndarray, excluded: int, eligible: int) -> list[Match]:
-        """Top-k map entries within max_distance among the first ``eligible`` rows."""
-        cfg = self.config.match
-        # one (D,) descriptor: search returns one list of matches
-        hits = cast(list[Match], self.map.search(desc, k=min(cfg.top_k + excluded, len(self.map)),
-                                                 max_distance=self.max_distance))
-        newest_ids = set(self.map.ids[eligible:].tolist())
-        return [h for h in hits if h.id not in newest_ids][: cfg.top_k]
-
-    def _search_scan_context(self, context: np.ndarray, eligible: int) -> list[Match]:
-        """Top-k Scan Contexts within match.sc_max_distance among the first ``eligible`` rows (distance: theirs)."""
-        assert self.scan_contexts is not None  # made whenever match.method is not "lcpr"
-        cfg = self.config.match
-        found = self.scan_contexts.search(context, rows=eligible, k=cfg.top_k, max_distance=cfg.sc_max_distance)
-        if not found:
-            return []
-        sources = self.map.sources
-        out = []
-        for rank, (row, distance) in enumerate(found):
-            p = self.map.poses[row]
-            pose = None if np.isnan(p).all() else (float(p[0]), float(p[1]), float(p[2]))
-            out.append(Match(id=int(self.map.ids[row]), distance=distance, stamp=float(self.map.stamps[row]),
-                             pose=pose, source=sources[row], rank=rank))
-        return out
-
-    def _prior_scan_contexts(self) -> ScanContextRows:
-        """Scan Context rows for the map's existing keyframes: those the map file kept when they were made as
-        these are, else rebuilt from the stored compact clouds (a keyframe without one is never proposed by Scan
-        Context); the map holds them from here on, so a saved map keeps them."""
-        config = ScanContextConfig(candidates=SC_CANDIDATES_PER_K * self.config.match.top_k)
-        kept = self.map.scan_contexts
-        if kept is not None and len(kept) == len(self.map) and kept.config.describing() == config.describing():
-            rows = kept.with_config(config)
-            log.info("match.method %s: the prior map's %d Scan Contexts loaded", self.config.match.method, len(rows))
-        else:
-            rows, missing = ScanContextRows(config), 0
-            for kf in self.map.ids.tolist():
-                xyz = self.map.clouds.get(int(kf))
-                missing += xyz is None
-                rows.add(None if xyz is None else rows.describe(xyz))
-            if len(self.map):
-                log.info("match.method %s: Scan Contexts of the prior map's %d keyframes rebuilt from their clouds "
-                         "(%d have none and are never proposed by it)", self.config.match.method, len(self.map),
-                         missing)
-        self.map.scan_contexts = rows
-        return rows
+        return self.proposer.search(query, SearchRequest(eligible, self.config.match, self.max_distance))
 
     def _excluded_count(self, stamp: float) -> int:
         """How many of this session's newest keyframes the exclusion rules hide from ``stamp``."""

@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from lcpr_core.descriptor_map import DescriptorMap
+from lcpr_core.detector import DetectorConfig, Frame, KeyframeConfig, LoopDetector, MatchConfig, SensorConfig
 from lcpr_core.errors import MapSchemaError
 from lcpr_core.lcpr.describer import Describer, Prepared, prepare_each
-from lcpr_core.lcpr.detector import DetectorConfig, Frame, KeyframeConfig, LoopDetector, MatchConfig, SensorConfig
 from lcpr_core.verification import VerifierConfig
 
 RETRIEVAL_ONLY = VerifierConfig(enabled=False)  # these tests are about keyframing and retrieval

@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from lcpr_core.descriptor_map import DescriptorMap
+from lcpr_core.detector import MATCH_METHODS, DetectorConfig, Frame, LoopDetector, MatchConfig
 from lcpr_core.errors import InvalidValueError, MapError
 from lcpr_core.lcpr.describer import Describer, Prepared, PreparedBatch, prepare_each
-from lcpr_core.lcpr.detector import MATCH_METHODS, DetectorConfig, Frame, LoopDetector, MatchConfig
 from lcpr_core.scan_context import ScanContextConfig, ScanContextRows, scan_context
 from lcpr_core.verification import VerifierConfig
 
