@@ -5,11 +5,13 @@ import os
 
 import numpy as np
 
+from .errors import ProjectError
+
 KITTI_COLUMNS = ("x", "y", "z", "reflectance")
 NUSCENES_COLUMNS = ("x", "y", "z", "intensity", "ring")
 
 
-class PointFileError(ValueError):
+class PointFileError(ProjectError, ValueError):
     """A point file whose size is not a whole number of rows; callers re-raise it as their own error."""
 
 

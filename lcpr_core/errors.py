@@ -1,7 +1,9 @@
 """Exceptions raised by lcpr_core; every message names the bad value and what is accepted."""
 
+from lcpr_common.errors import ProjectError
 
-class LcprError(Exception):
+
+class LcprError(ProjectError):
     """Base class of every error raised by lcpr_core."""
 
 

@@ -26,13 +26,21 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
+from lcpr_core.detector import DetectorConfig, Frame, LoopDetector
 from lcpr_core.geometry import xyz_rpy_from_pose
-from lcpr_core.lcpr.detector import DetectorConfig, Frame, LoopDetector
 from lcpr_core.lcpr.preprocess.camera import CameraInput
 from lcpr_core.pretrained import describe_weights, threshold_text
 from ros_common.diagnostics import DiagnosticsBuilder, Health
 from ros_common.errors import ConfigError, InputRejected
-from ros_common.inputs import offer_odometry
+from ros_common.inputs import (
+    CLOUD_NAN,
+    IMAGE_DECODE,
+    camera_input,
+    cloud_points,
+    compressed_payload,
+    offer_odometry,
+    raw_payload,
+)
 from ros_common.mapstore import answer_save_request, save_under_lock
 from ros_common.poses import NoPoses, OdometryBuffer, PoseSource
 from ros_common.process import finish_and_save, node_parser, run_node
@@ -44,7 +52,6 @@ from ros_common.stats import Counts, NodeStats, Window
 from ros_common.worker import Worker
 
 from .config import NodeConfig
-from .inputs import CLOUD_NAN, IMAGE_DECODE, camera_input, cloud_points, compressed_payload, raw_payload
 from .mapstore import load_prior_map, save_map
 from .markers import LoopMarkers, MarkerSink, NoMarkers
 from .outputs import candidates_msg, loop_closure_msg, up_msg

@@ -81,10 +81,14 @@ def _rosbags_value(desc: tuple[Any, Any], value: Any) -> Any:
     if ros_name == "string":
         return list(value)
     dtype = np.dtype(_NUMPY_OF_ROS[ros_name])
-    if isinstance(value, (bytes, bytearray, memoryview)):
-        arr = np.frombuffer(value, dtype=np.uint8).view(dtype) if dtype == np.uint8 else np.frombuffer(value, dtype)
-    else:
-        arr = np.asarray(value, dtype=dtype).reshape(-1)
+    try:
+        if isinstance(value, (bytes, bytearray, memoryview)):
+            arr = np.frombuffer(value, dtype=np.uint8).view(dtype) if dtype == np.uint8 else np.frombuffer(value, dtype)
+        else:
+            arr = np.asarray(value, dtype=dtype).reshape(-1)
+    except (TypeError, ValueError, OverflowError) as err:
+        raise MessageError(f"an array of {ros_name} values cannot hold {type(value).__name__} {value!r:.60}: "
+                           f"{err}") from err
     if int(kind) == _ARRAY and arr.size != length:
         raise MessageError(f"a fixed array of {length} {ros_name} values got {arr.size} values")
     return arr
@@ -177,5 +181,5 @@ def as_uint8(data: Any) -> np.ndarray:
         return np.frombuffer(memoryview(data).cast("B"), dtype=np.uint8)
     try:
         return np.asarray(data, dtype=np.uint8).reshape(-1)
-    except (TypeError, ValueError) as err:
+    except (TypeError, ValueError, OverflowError) as err:
         raise MessageError(f"cannot read a byte payload from {type(data).__name__}") from err

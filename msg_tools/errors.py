@@ -5,8 +5,10 @@ only know the standard library can still catch them.
 """
 from __future__ import annotations
 
+from lcpr_common.errors import ProjectError
 
-class MsgToolsError(Exception):
+
+class MsgToolsError(ProjectError):
     """Base class of every error raised by msg_tools."""
 
 

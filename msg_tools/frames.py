@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .errors import ImageError
+
 #: nuScenes camera order, which is also LCPR's panorama order.
 NUSCENES_CAMERAS = (
     "CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_FRONT_LEFT",
@@ -58,7 +60,8 @@ class CameraImage:
 
     def __post_init__(self) -> None:
         if (self.rgb is None) == (self.jpeg is None):
-            raise ValueError("a CameraImage holds exactly one of rgb or jpeg")
+            raise ImageError(f"a CameraImage holds exactly one of rgb or jpeg; got rgb {self.rgb is not None}, "
+                             f"jpeg {self.jpeg is not None}")
 
 
 @dataclass(frozen=True)

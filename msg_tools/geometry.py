@@ -14,10 +14,11 @@ def quaternion_to_matrix(q_xyzw: ArrayLike) -> np.ndarray:
     q = np.asarray(q_xyzw, dtype=np.float64).reshape(-1)
     if q.size != 4 or not np.all(np.isfinite(q)):
         raise GeometryError(f"a quaternion needs 4 finite values (x, y, z, w), got {q.tolist()}")
-    norm = np.linalg.norm(q)
-    if norm < 1e-12:
+    scale = float(np.abs(q).max())  # divided out first: the norm of values near 1e308 would overflow
+    scaled = q / scale if scale else q
+    if scale * float(np.linalg.norm(scaled)) < 1e-12:
         raise GeometryError(f"quaternion {q.tolist()} has zero length; accepted: a non-zero (unit) quaternion")
-    return rotations_from_xyzw(q / norm)
+    return rotations_from_xyzw(scaled / np.linalg.norm(scaled))
 
 
 def matrix_to_quaternion(R: np.ndarray) -> np.ndarray:

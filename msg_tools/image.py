@@ -90,6 +90,8 @@ def check_layout(msg: Any) -> Encoding:
     encoding = str(msg.encoding)
     enc = encoding_of(encoding)
     height, width, step = int(msg.height), int(msg.width), int(msg.step)
+    if min(height, width, step) < 0:
+        raise ImageLayoutError(f"image of {width} x {height} with step {step}; accepted: sizes of 0 or more")
     row_bytes = width * enc.channels * enc.dtype.itemsize
     if step < row_bytes:
         raise ImageLayoutError(
@@ -177,7 +179,10 @@ def image_to_rgb(msg: Any) -> np.ndarray:
         raise ImageEncodingError(
             f"encoding {encoding!r} is not a colour or mono encoding; accepted: {', '.join(COLOUR_ENCODINGS)}"
         )
-    return _to_rgb(image_to_array(msg), encoding)
+    pixels = image_to_array(msg)
+    if not pixels.size:  # an empty image converts to an empty one (OpenCV refuses empty inputs)
+        return np.zeros((int(msg.height), int(msg.width), 3), np.uint8)
+    return _to_rgb(pixels, encoding)
 
 
 def _to_rgb(pixels: np.ndarray, encoding: str) -> np.ndarray:

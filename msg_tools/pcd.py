@@ -53,6 +53,10 @@ def read_pcd(path: str | os.PathLike[str]) -> np.ndarray:
     if not len(fields) == len(sizes) == len(types) == len(counts):
         raise DatasetError(f"{where}: FIELDS/SIZE/TYPE/COUNT have {len(fields)}/{len(sizes)}/{len(types)}/"
                            f"{len(counts)} entries; they must agree")
+    if not fields or len(set(fields)) != len(fields):
+        raise DatasetError(f"{where}: FIELDS {fields}; accepted: one or more distinct names")
+    if points < 0 or min(counts) < 1:
+        raise DatasetError(f"{where}: POINTS {points}, COUNT {counts}; accepted: POINTS >= 0 and every COUNT >= 1")
     formats = []
     for name, t, s, c in zip(fields, types, sizes, counts, strict=True):
         code = _TYPES.get((t, s))
@@ -67,7 +71,10 @@ def read_pcd(path: str | os.PathLike[str]) -> np.ndarray:
                                f"header; the file has {len(raw) - pos} (truncated?)")
         return np.frombuffer(raw, dtype=dtype, count=points, offset=pos).copy()
     if data == "ascii":
-        numbers = np.array(raw[pos:].split(), dtype=np.float64)
+        try:
+            numbers = np.array(raw[pos:].split(), dtype=np.float64)
+        except ValueError as err:
+            raise DatasetError(f"{where}: ascii DATA holds a value that is not a number: {err}") from err
         width = sum(counts)
         if numbers.size < points * width:
             raise DatasetError(f"{where}: {numbers.size} values for {points} points of {width}; truncated?")

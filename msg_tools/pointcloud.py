@@ -30,12 +30,19 @@ def pointcloud2_to_array(msg: Any, *, keep_nonfinite: bool = True, require_xyz: 
     """
     height, width = int(msg.height), int(msg.width)
     point_step, row_step = int(msg.point_step), int(msg.row_step)
+    negative = {k: v for k, v in (("height", height), ("width", width), ("point_step", point_step),
+                                  ("row_step", row_step)) if v < 0}
+    if negative:
+        raise PointFieldLayoutError(f"{negative} cannot be negative; accepted: sizes of 0 or more")
     stored = fields_to_dtype(read_field_specs(msg.fields), point_step=point_step, is_bigendian=bool(msg.is_bigendian))
     names = stored.names or ()
     missing = [n for n in XYZ if n not in names]
     if missing and (require_xyz or not keep_nonfinite):
         why = "require_xyz=True" if require_xyz else "keep_nonfinite=False needs x, y and z to judge points"
         raise MissingFieldError(f"the cloud has no field(s) {missing} ({why}); its fields are {list(names)}")
+    if width and height and point_step == 0:
+        raise PointFieldLayoutError(f"point_step 0 with {width} x {height} points; accepted: point_step >= 1, "
+                                    "the bytes of one point")
     if width and height and row_step < width * point_step:
         raise PointFieldLayoutError(
             f"row_step {row_step} is smaller than width * point_step = {width} * {point_step}; rows would overlap"
@@ -130,6 +137,8 @@ def xyz_cloud(points: np.ndarray, **extra: np.ndarray) -> np.ndarray:
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] < 3:
         raise PointCloudError(f"points must be N x 3 (or wider), got shape {pts.shape}")
+    if pts.dtype.kind not in "iuf":
+        raise PointCloudError(f"points must be integers or floats, got {pts.dtype}; nothing is cast silently")
     columns: dict[str, np.ndarray] = {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]}
     for name, values in extra.items():
         values = np.asarray(values)

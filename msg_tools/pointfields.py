@@ -20,6 +20,7 @@ POINTFIELD_NAMES: dict[int, str] = {
 _DATATYPE_OF = {dtype: code for code, dtype in POINTFIELD_DTYPES.items()}
 _ACCEPTED = ", ".join(f"{code} ({name})" for code, name in POINTFIELD_NAMES.items())
 _ACCEPTED_DTYPES = ", ".join(str(d) for d in POINTFIELD_DTYPES.values())
+_MAX_POINT_STEP = 2**31 - 1  # numpy's largest itemsize (a C int)
 
 
 @dataclass(frozen=True)
@@ -47,6 +48,9 @@ def fields_to_dtype(specs: Sequence[FieldSpec], *, point_step: int, is_bigendian
     :class:`PointFieldLayoutError` for a repeated or empty name, a count below 1, a
     field reaching past ``point_step`` or two fields sharing bytes.
     """
+    if not 0 <= point_step <= _MAX_POINT_STEP:
+        raise PointFieldLayoutError(f"point_step {point_step} is outside the accepted range 0..{_MAX_POINT_STEP} "
+                                    "(the largest item numpy holds)")
     order: Literal[">", "<"] = ">" if is_bigendian else "<"
     names: list[str] = []
     formats: list[Any] = []

@@ -2,8 +2,10 @@
 wrong and what is accepted."""
 from __future__ import annotations
 
+from lcpr_common.errors import ProjectError
 
-class NodeError(Exception):
+
+class NodeError(ProjectError):
     """Base class of every error the ROS layer raises."""
 
 

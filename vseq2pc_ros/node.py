@@ -41,7 +41,14 @@ from lcpr_core.vseq2pc import Vseq2pcMap, Vseq2pcNet
 from lcpr_core.vseq2pc.detector import CameraFrame, LabelledScan, SequenceDetector
 from ros_common.diagnostics import DiagnosticsBuilder, Health
 from ros_common.errors import ConfigError, InputRejected
-from ros_common.inputs import offer_odometry
+from ros_common.inputs import (
+    CLOUD_NAN,
+    depth_image,
+    intrinsics,
+    label_image,
+    labelled_cloud,
+    offer_odometry,
+)
 from ros_common.mapstore import answer_save_request, save_under_lock
 from ros_common.poses import OdometryBuffer
 from ros_common.process import finish_and_save, node_parser, run_node
@@ -52,11 +59,10 @@ from ros_common.stats import Counts, NodeStats, Window
 from ros_common.worker import Worker
 
 from .config import ExtrinsicsConfig, NodeConfig
-from .inputs import CLOUD_NAN, SIZE_MISMATCH, depth_image, intrinsics, label_image, labelled_cloud
 from .mapstore import open_map
 from .outputs import candidates_msg, loop_closure_msg
 from .params import all_leaves, describe_all, make_runtime, settings_from
-from .sync import NO_PAIR, TIME_JUMPED, ImagePairs, PoseQueue
+from .sync import NO_PAIR, SIZE_MISMATCH, TIME_JUMPED, ImagePairs, PoseQueue
 
 NODE_NAME = "vseq2pc"
 BUSY = "worker: item dropped while busy"

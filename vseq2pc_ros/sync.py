@@ -16,6 +16,7 @@ from ros_common.poses import PoseSource
 from ros_common.stamps import NS_PER_S, StampOrder
 
 NO_PAIR = "camera: depth or labels image without partner"
+SIZE_MISMATCH = "camera: image sizes differ"  # depth vs labels, or images vs camera_info
 NO_POSE = "no pose: odometry does not cover the stamp"
 POSE_TIMEOUT = "no pose: odometry did not arrive in time"
 NO_CAMERA_INFO = "camera: no camera_info"

@@ -11,6 +11,8 @@ import json
 import sys
 from pathlib import Path
 
+from lcpr_common.cli import tool_main
+
 
 def report_line(path: Path) -> str:
     """'<folder> <method>: R@1 .. max F1 .. thr .. | ...' for one report.json."""
@@ -20,6 +22,7 @@ def report_line(path: Path) -> str:
     return f"{path.parent.name} " + " | ".join(cells)
 
 
+@tool_main
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("out", type=Path, help="a folder of lcpr_eval outputs named eval_*")

@@ -17,7 +17,10 @@ import sys
 import time
 from pathlib import Path
 
+from lcpr_common.cli import tool_main
 
+
+@tool_main
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("bag", type=Path, help="a nuScenes-rig rosbag2 (e.g. citysim --image-size 1600x900)")

@@ -40,6 +40,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from lcpr_common.cli import tool_main
+
 if TYPE_CHECKING:  # torch and the package are imported after the arguments are read
     import torch
 
@@ -137,6 +139,7 @@ def preprocessing_cpu_ms(describer: Describer, images: list[bytes], points: np.n
     return {k: 1000 * float(np.median([r.get(k, 0.0) for r in rows])) for k in rows[0]}
 
 
+@tool_main
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", type=Path, nargs="+", default=None, help="folders each holding one nuScenes keyframe")
@@ -154,11 +157,11 @@ def main(argv: list[str] | None = None) -> int:
     from lcpr_common.shared_data import shared_path
     from lcpr_core import Describer
     from lcpr_core.atomic import write_bytes_atomic
-    from lcpr_core.lcpr.keyframe_demo import cosine
     from lcpr_core.lcpr.preprocess.dataset_files import find_nuscenes_keyframe
     from lcpr_core.lcpr.preprocess.decode import jpeg_backend
     from lcpr_core.lcpr.runtime.cuda import gpu_name
     from lcpr_core.timing import cpu_model
+    from lcpr_offline.lcpr_keyframe_demo import cosine
 
     folders = args.data or [shared_path("data", "nuscenes_sample"), shared_path("data", "nuscenes_sample2")]
     devices = args.devices or (["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"])

@@ -15,9 +15,12 @@ import contextlib
 import dataclasses
 import os
 import statistics
+import sys
 import time
 from functools import partial
 from typing import TYPE_CHECKING
+
+from lcpr_common.cli import tool_main
 
 if TYPE_CHECKING:  # torch and the package are imported after the arguments are read
     import torch
@@ -129,6 +132,7 @@ def forward(args: argparse.Namespace) -> None:
 
 
 
+@tool_main
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--threads", type=int, default=2)
@@ -153,4 +157,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -15,6 +15,8 @@ import argparse
 import sys
 from typing import TYPE_CHECKING
 
+from lcpr_common.cli import tool_main
+
 if TYPE_CHECKING:  # torch and the package are imported after the arguments are read
     import torch
 
@@ -49,6 +51,7 @@ def median_ms(model: LCPR, batch: int, *, device: torch.device, bf16: bool, repe
         return 1000 * median_seconds(forward, repeats=repeats, warmup=warmup)
 
 
+@tool_main
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", default="cuda:0")

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import gc
+import sys
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -21,6 +22,8 @@ from functools import partial
 from typing import TYPE_CHECKING
 
 import numpy as np
+
+from lcpr_common.cli import tool_main
 
 if TYPE_CHECKING:  # for annotations only: the functions import lcpr_core lazily
     from lcpr_core.descriptor_map import DescriptorMap, MapConfig
@@ -197,6 +200,7 @@ def print_table(rows: list[Row]) -> None:
               f"{fmt(r.recall, '.3f'):>6}  {r.target}")
 
 
+@tool_main
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sizes", default="10000,1000000", help="comma-separated map sizes")
@@ -237,4 +241,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

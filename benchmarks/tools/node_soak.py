@@ -45,6 +45,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from lcpr_common.cli import tool_main
+
 if TYPE_CHECKING:  # ROS and the package are imported after the arguments are read
     from ros_common.harness import OutputListener
 
@@ -100,6 +102,7 @@ def ms(values: list[float]) -> str:
     return f"p50 {p50:7.1f}  p90 {p90:7.1f}  p99 {p99:7.1f} ms"
 
 
+@tool_main
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter,

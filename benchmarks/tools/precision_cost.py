@@ -17,7 +17,10 @@ import argparse
 import sys
 from pathlib import Path
 
+from lcpr_common.cli import tool_main
 
+
+@tool_main
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("bags", nargs="+", type=Path)
@@ -29,7 +32,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("out/precision_cost"))
     args = parser.parse_args(argv)
 
-    from lcpr_core.lcpr.eval_report import online
+    from lcpr_core.evaluation.eval_report import online
     from lcpr_offline.lcpr_quantize import main as lcpr_quantize
     from lcpr_ros.evaluate import main as lcpr_eval
 

@@ -25,6 +25,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from lcpr_common.cli import tool_main
+
 if TYPE_CHECKING:  # the package (and torch with it) is imported after the arguments are read
     from lcpr_core.verification import GeometricVerifier, PreparedCloud
     from lcpr_offline.verification_pairs import Scans
@@ -95,6 +97,7 @@ def compare(name: str, seq: Scans, truth_poses: np.ndarray, pairs: np.ndarray, v
     return out
 
 
+@tool_main
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", type=Path, default=None, help="the livox_hku folder (default: ../shared/data/livox_hku)")

@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from lcpr_common.cli import tool_main
+
 
 def percentiles(values: list[float]) -> str:
     if not values:
@@ -30,6 +32,7 @@ def percentiles(values: list[float]) -> str:
     return f"p50 {p50:.1f} ms, p90 {p90:.1f} ms ({len(values)})"
 
 
+@tool_main
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("bag", type=Path, help="a nuScenes-rig rosbag2 (e.g. msg_tools_synth --rig nuscenes)")
@@ -44,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from lcpr_core import ModelConfig
-    from lcpr_core.lcpr.detector import DetectorConfig, Frame, LoopDetector, Result
+    from lcpr_core.detector import DetectorConfig, Frame, LoopDetector, Result
     from lcpr_core.lcpr.runtime.cuda import gpu_name
     from lcpr_core.timing import cpu_model
     from lcpr_offline.lcpr_evaluate import to_detector_frame

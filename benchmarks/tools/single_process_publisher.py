@@ -31,6 +31,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from lcpr_common.cli import tool_main
+
 REPO = Path(__file__).resolve().parents[2]
 T0 = 1_700_000_000.0
 
@@ -51,6 +53,7 @@ def start_node(
                             stdout=log.open("wb"), stderr=subprocess.STDOUT)
 
 
+@tool_main
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--frames", type=int, default=60)

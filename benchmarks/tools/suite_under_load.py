@@ -20,6 +20,8 @@ import sys
 import time
 from pathlib import Path
 
+from lcpr_common.cli import tool_main
+
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -46,6 +48,7 @@ def each_alone(files: list[Path]) -> int:
     return 1 if failed else 0
 
 
+@tool_main
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--runs", type=int, default=5)

@@ -23,6 +23,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from lcpr_common.cli import tool_main
+
 if TYPE_CHECKING:  # the simulator is imported after the arguments are read
     from msg_tools.frames import SensorFrame
 
@@ -36,6 +38,7 @@ def image_size(text: str) -> tuple[int, int]:
     return parse(text)
 
 
+@tool_main
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--frames", type=int, default=300)

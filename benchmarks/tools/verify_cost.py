@@ -40,11 +40,14 @@ from typing import Any
 
 import numpy as np
 
+from lcpr_common.cli import tool_main
+
 POSE_TOLERANCE_M = 1e-3  # --compare: a pose that moved more than this (or the angle below) is a difference
 POSE_TOLERANCE_DEG = 1e-2
 POSE_OK_M, POSE_OK_DEG = 0.5, 3.0  # an accepted pair's pose is right within these of the drive's poses
 
 
+@tool_main
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--frames", type=int, default=160)

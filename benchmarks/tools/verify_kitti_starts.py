@@ -28,6 +28,8 @@ from typing import Any
 
 import numpy as np
 
+from lcpr_common.cli import tool_main
+
 
 def summary(rows: list[dict[str, Any]], name: str) -> dict[str, Any]:
     """Share right, accepted, reasons, fitness (median over right / other results) and time of one guess kind."""
@@ -47,6 +49,7 @@ def summary(rows: list[dict[str, Any]], name: str) -> dict[str, Any]:
         "ms_p50": float(np.median(seconds) * 1e3), "ms_p90": float(np.percentile(seconds, 90) * 1e3)}
 
 
+@tool_main
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--kitti", type=Path, default=None, help="the kitti00 folder (default: ../shared/data/kitti00)")

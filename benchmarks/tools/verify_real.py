@@ -42,6 +42,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from lcpr_common.cli import tool_main
+
 if TYPE_CHECKING:  # the package (and torch with it) is imported after the arguments are read
     from lcpr_core.verification import GeometricVerifier, PreparedCloud, SubmapConfig
     from lcpr_offline.verification_pairs import PreparedScans
@@ -159,6 +161,7 @@ def summarise(name: str, r: dict[str, np.ndarray], *, true: bool, posed: bool = 
     return out
 
 
+@tool_main
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", type=Path, default=None, help="the livox_hku folder (default: ../shared/data/livox_hku)")

@@ -18,11 +18,14 @@ do not follow L2); pass --descriptor-weights for a trained one.
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+
+from lcpr_common.cli import tool_main
 
 if TYPE_CHECKING:  # torch and the package are imported after the arguments are read
     from lcpr_core.vseq2pc.models import DescriptorModel
@@ -74,6 +77,7 @@ def timed(db: ScanDatabase, head: DescriptorModel, qs: np.ndarray, config: Searc
     return times, tops
 
 
+@tool_main
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--sizes", default="5000,100000", help="database sizes in scans (comma-separated)")
@@ -129,4 +133,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -19,6 +19,8 @@ import time
 
 import numpy as np
 
+from lcpr_common.cli import tool_main
+
 
 def cpu_name() -> str:
     try:
@@ -31,6 +33,7 @@ def cpu_name() -> str:
     return platform.processor() or "unknown CPU"
 
 
+@tool_main
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("drive", help="a drive file of vseq2pc_verify_data.py")

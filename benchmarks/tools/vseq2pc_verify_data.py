@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from lcpr_common.cli import tool_main
+
 #: variant name -> (depth range m, 0 = all; relative noise, 1 sigma); 25 m is citysim's DEPTH_RANGE
 VARIANTS: dict[str, tuple[float, float]] = {
     "exact": (0.0, 0.0), "net5": (25.0, 0.05), "net10": (25.0, 0.10), "net20": (25.0, 0.20),
@@ -91,6 +93,7 @@ def render(seed: int, frames: int, variants: list[str]) -> dict[str, np.ndarray]
     return arrays
 
 
+@tool_main
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--seed", type=int, required=True)

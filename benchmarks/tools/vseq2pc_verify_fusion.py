@@ -19,6 +19,8 @@ from typing import Any
 
 import numpy as np
 
+from lcpr_common.cli import tool_main
+
 
 def cloud_error(path: str, variant: str, *, fuse: bool, query_step: int, every: int = 5) -> dict[str, float]:
     """Median over queries of the median / mean / p90 distance (m) of the variant's pseudo-cloud points to the
@@ -50,6 +52,7 @@ def cloud_error(path: str, variant: str, *, fuse: bool, query_step: int, every: 
             "stack_ms_p50": float(np.median(times) * 1e3), "queries": len(queries)}
 
 
+@tool_main
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("drive", help="a drive file of benchmarks/tools/vseq2pc_verify_data.py")

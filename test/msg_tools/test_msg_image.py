@@ -259,3 +259,13 @@ def test_an_unknown_encoding_lists_the_camera_native_ones_too() -> None:
                 is_bigendian=0, step=2, data=np.zeros(4, np.uint8))
     with pytest.raises(ImageEncodingError, match="bayer_rggb8.*nv21"):
         image_to_rgb(msg)
+
+
+@pytest.mark.parametrize("encoding", ["bayer_rggb8", "bayer_grbg8", "yuv422", "yuyv", "nv21"])
+@pytest.mark.parametrize("height, width", [(0, 4), (4, 0), (0, 0)])
+def test_an_empty_camera_native_image_with_data_becomes_an_empty_rgb_array(encoding, height, width) -> None:
+    """Found by fuzzing: OpenCV's cvtColor asserts on an empty input, so msg_tools must not hand it one."""
+    msg = Image(header=Header(stamp=Time(sec=1, nanosec=0), frame_id="c"), height=height, width=width,
+                encoding=encoding, is_bigendian=0, step=8, data=np.arange(64, dtype=np.uint8))
+    rgb = image_to_rgb(msg)
+    assert rgb.shape == (height, width, 3) and rgb.dtype == np.uint8

@@ -246,3 +246,15 @@ def test_a_dense_native_cloud_is_read_with_one_copy_and_equals_the_field_by_fiel
     slow = _copy_fields(np.frombuffer(bytes(msg.data), np.uint8), stored, stored, (1, 500), int(msg.row_step))
     assert np.array_equal(fast, slow.reshape(-1)) and np.array_equal(fast, arr)
     assert not np.shares_memory(fast, np.asarray(msg.data))  # a copy: the message's buffer may be reused
+
+
+def test_points_of_zero_bytes_are_refused_naming_the_point_step() -> None:
+    """Found by fuzzing: a cloud without fields, point_step 0 and some data let numpy's ValueError out."""
+    msg = _simple(fields=[], point_step=0, row_step=0, width=3)
+    with pytest.raises(PointFieldLayoutError, match="point_step 0"):
+        pointcloud2_to_array(msg)
+
+
+def test_an_empty_cloud_without_fields_reads_as_no_points() -> None:
+    msg = _simple(fields=[], point_step=0, row_step=0, width=0, height=0, data=np.zeros(0, np.uint8))
+    assert pointcloud2_to_array(msg).size == 0

@@ -8,10 +8,13 @@ follow are mypy's to check (setup.cfg lists benchmarks).
 """
 from __future__ import annotations
 
+import importlib.util
 import subprocess
 import sys
 from pathlib import Path
+from types import ModuleType
 
+import numpy as np
 import pytest
 
 TOOLS = Path(__file__).resolve().parents[2] / "benchmarks" / "tools"
@@ -27,3 +30,34 @@ def test_every_maintained_tool_prints_its_help(tool: Path, tmp_path: Path) -> No
                           cwd=tmp_path)
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.startswith(f"usage: {tool.name}"), done.stdout[:500]
+
+
+def _tool_module(name: str) -> ModuleType:
+    spec = importlib.util.spec_from_file_location(f"{name}_tool", TOOLS / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_a_folder_with_one_scan_more_than_poses_ends_the_tool_with_one_error_line(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    folder = tmp_path / "walk"
+    folder.mkdir()
+    for k in range(3):
+        np.zeros((10, 4), np.float32).tofile(folder / f"{k:06d}.bin")  # KITTI layout: x, y, z, reflectance
+    np.savetxt(folder / "poses.txt", np.tile(np.eye(4)[:3].reshape(1, 12), (2, 1)))
+    tool = _tool_module("lidar_loops_compare")
+    status = tool.main(["--only-folders", "--folder", str(folder), "--mc-map-length", "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert status == 2
+    assert err == [f"lidar_loops_compare.py: error: 3 scans but 2 lines in {folder / 'poses.txt'}, and the scan "
+                   "names (000000.bin .. 000002.bin) are not line numbers of it"]
+    assert not (tmp_path / "out").exists()
+
+
+def test_every_maintained_tool_ends_on_bad_input_through_the_shared_helper() -> None:
+    """One way for all: each tool's main is wrapped by lcpr_common.cli.tool_main."""
+    unwrapped = [tool.name for tool in sorted(TOOLS.glob("*.py")) if "@tool_main\ndef main(" not in tool.read_text()]
+    assert unwrapped == []

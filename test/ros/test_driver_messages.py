@@ -6,8 +6,8 @@ import pytest
 
 from driver_layouts import LAYOUTS, driver_cloud, scan
 from lcpr_core.lcpr.preprocess import range_image
-from lcpr_ros import inputs
 from msg_tools import pointcloud2_to_array
+from ros_common import inputs
 from ros_common.errors import InputRejected
 
 

@@ -165,7 +165,7 @@ def test_a_bag_played_again_starts_a_new_session_that_closes_loops_to_the_first_
 
 def test_100_mb_of_garbage_on_a_camera_topic_is_refused_and_the_node_goes_on(ros: Ros) -> None:
     """An Image whose fields are nonsense and whose data is 100 MB of random bytes."""
-    from lcpr_ros import inputs
+    from ros_common import inputs
 
     rng = np.random.default_rng(0)
     garbage = Image(encoding="\x93\x07garbage", height=0xFFFFFFFF, width=0xFFFFFFFF, step=7,

@@ -27,8 +27,8 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
 from lcpr_core.descriptor_map import DescriptorMap
-from lcpr_ros import inputs
 from lcpr_ros.node import CANDIDATE_QOS, LcprNode
+from ros_common import inputs
 from ros_common.errors import ConfigError, MapLoadError
 from ros_common.harness import (
     FramePublisher,

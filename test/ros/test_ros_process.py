@@ -15,7 +15,7 @@ import pytest
 from rclpy.node import Node
 
 from lcpr_core.descriptor_map import DescriptorMap
-from lcpr_ros import inputs
+from ros_common import inputs
 from ros_common.harness import (
     FramePublisher,
     OutputListener,

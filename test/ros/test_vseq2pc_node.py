@@ -41,12 +41,12 @@ from msg_tools.frames import CameraModel
 from msg_tools.image import array_to_image
 from msg_tools.pointcloud import array_to_pointcloud2
 from msg_tools.transforms import pose_to_odometry
+from ros_common import inputs
 from ros_common.errors import ConfigError, MapLoadError
 from ros_common.harness import OutputListener, spinning, wait_until
-from vseq2pc_ros import inputs
 from vseq2pc_ros.config import NodeConfig
 from vseq2pc_ros.node import Vseq2pcNode
-from vseq2pc_ros.sync import TIME_JUMPED
+from vseq2pc_ros.sync import SIZE_MISMATCH, TIME_JUMPED
 
 REPO = Path(__file__).resolve().parents[2]
 DOMAIN = random.randint(101, 200)
@@ -328,7 +328,7 @@ def test_bad_input_is_dropped_counted_warned_once_and_the_map_is_kept(ros: Ros, 
     ros.cloud(cloud_msg(drive.clouds[1], stamp + 20))  # a good cloud
     ros.cloud(cloud_msg(drive.clouds[2], stamp + 19))  # out of order
     causes = [inputs.CLOUD_NO_LABEL, inputs.CLOUD_NO_XYZ, inputs.CLOUD_TRUNCATED, inputs.DEPTH_ENCODING,
-              inputs.SIZE_MISMATCH, "cloud: out of order"]
+              SIZE_MISMATCH, "cloud: out of order"]
     expected = {cause: 1 if cause == "cloud: out of order" else 2 for cause in causes}
     assert wait_until(lambda: all(ros.node.drops[c] >= n for c, n in expected.items())), ros.node.drops.snapshot()
     assert wait_until(lambda: len(ros.node.map) == size + 1)  # the good cloud still goes in
