@@ -14,7 +14,15 @@ The rule (:func:`score_loops`):
 
 * a loop is *correct* when the match keyframe's true position lies within
   ``radius`` metres of the query's (keyframes without a finite position never are);
-* precision = correct / loops (None when there is no loop);
+* precision = correct / loops (None when there is no loop): the radius rule, all that
+  retrieval alone (loops without a pose) can be judged by;
+* a loop with a pose is judged by it (:func:`pose_right`, the one rule for "the right
+  pose"): its ``match_T_query`` within :data:`POSE_OK_M` and :data:`POSE_OK_DEG` (the whole
+  rotation angle) of the truth. Verified loops fall in three groups: right pose within the
+  radius, right pose beyond it (a valid constraint for a pose graph, however far apart) and
+  wrong pose (harmful, near or far); a loop whose pose cannot be judged (no pose, or no true
+  pose of either keyframe) is in none and counts as not right.
+  precision_by_pose = right pose / loops (None when no loop's pose can be judged);
 * recall = revisiting queries (``has_revisit``) closed by at least one correct loop /
   revisiting queries (None when the drive has none); several loops of one query
   close it once;
@@ -48,12 +56,14 @@ from .posegraph import (
     optimize_pose_graph,
     plot_trajectories,
     relative_pose_error,
+    rotation_error_deg,
 )
 from .positives import within_radius
 
 __all__ = [
-    "DEFAULT_LOOP_COVARIANCE", "LoopScore", "PoseGraphProof", "PublishedLoop", "covariance_lidar_to_body",
-    "fitness_sweep", "loop_correct", "loop_pose_errors", "pose_graph_proof", "score_loops",
+    "DEFAULT_LOOP_COVARIANCE", "POSE_OK_DEG", "POSE_OK_M", "LoopScore", "PoseGraphProof", "PublishedLoop",
+    "covariance_lidar_to_body", "fitness_sweep", "loop_correct", "loop_pose_errors", "loop_pose_right",
+    "pose_graph_proof", "pose_right", "score_loops", "verified_fitness_sweep", "verified_loop_right",
 ]
 
 #: Covariance given to a loop that carries a pose but no covariance: 10 cm in x and y, 5 cm in z,
@@ -90,13 +100,38 @@ class LoopScore:
     yaw_err_median: float | None = None  # deg
     yaw_err_p95: float | None = None
     posed: int = 0  # correct loops with a pose and ground truth: the pose-error sample
-    wrong_with_true_pose: int = 0  # loops beyond radius whose relative pose is within POSE_OK of the truth
+    wrong_with_true_pose: int = 0  # equals right_beyond_radius; kept for the readers of that report.json key
+    right_within_radius: int = 0  # loops within radius whose relative pose is right (pose_right)
+    right_beyond_radius: int = 0  # loops beyond radius whose relative pose is right: valid constraints
+    wrong_pose: int = 0  # loops whose relative pose is wrong, within the radius or beyond: harmful
+    unjudged: int = 0  # loops whose pose cannot be judged (no pose, or no true pose of a keyframe)
+    precision_by_pose: float | None = None  # right pose / loops; None when no loop's pose can be judged
+
+    @property
+    def judged_by_pose(self) -> bool:
+        """Whether the loops' precision is judged by their poses (else by the radius rule alone)."""
+        return self.precision_by_pose is not None
+
+    @property
+    def headline_precision(self) -> float | None:
+        """The precision a verified loop is reported by: by pose when poses can be judged, else by radius."""
+        return self.precision_by_pose if self.judged_by_pose else self.precision
+
+    def groups_text(self, radius: float) -> str:
+        """The loops in their groups, for a console line (by pose; by the radius rule when none is judged)."""
+        if not self.judged_by_pose:
+            return f"{self.correct} within {radius:g} m, {self.loops - self.correct} beyond"
+        text = (f"{self.right_within_radius} right pose within {radius:g} m, {self.right_beyond_radius} right pose "
+                f"beyond {radius:g} m (a valid constraint), {self.wrong_pose} wrong pose")
+        return text + (f", {self.unjudged} without a pose to judge" if self.unjudged else "")
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
 
-POSE_OK_M, POSE_OK_DEG = 0.3, 2.0  # a loop whose relative pose is this close to the truth is a valid constraint
+#: A loop's relative pose is right (a valid pose-graph constraint, however far apart its keyframes lie) when it
+#: is within this translation (m) and whole rotation angle (deg) of the truth; :func:`pose_right` applies it.
+POSE_OK_M, POSE_OK_DEG = 0.3, 2.0
 
 
 def _index(value: object, n: int, what: str) -> int:
@@ -120,6 +155,36 @@ def loop_correct(loops: Sequence[PublishedLoop], positions: np.ndarray, radius: 
     return out
 
 
+def pose_right(match_T_query: np.ndarray, true_match_T_query: np.ndarray) -> bool:
+    """Whether an estimated (4, 4) relative pose is right: its translation within :data:`POSE_OK_M` m of the
+    truth's and the rotation between them at most :data:`POSE_OK_DEG` deg (the whole angle, not the yaw alone:
+    a handheld sensor tilts, and a pose graph uses all of it). The one rule a loop is judged by its pose by."""
+    estimate = np.asarray(match_T_query, np.float64)
+    truth = np.asarray(true_match_T_query, np.float64)
+    return (relative_pose_error(estimate, truth)[0] <= POSE_OK_M
+            and rotation_error_deg(estimate, truth) <= POSE_OK_DEG)
+
+
+def _estimates_and_truths(
+    loops: Sequence[PublishedLoop], world_T_lidar: np.ndarray | None
+) -> list[tuple[np.ndarray, np.ndarray] | None]:
+    """Per loop (its match_T_query, the true one), or None: no pose, no truth, or a keyframe's truth not finite."""
+    if world_T_lidar is None:
+        return [None] * len(loops)
+    truth = np.asarray(world_T_lidar, np.float64)
+    if truth.ndim != 3 or truth.shape[1:] != (4, 4):
+        raise InputShapeError(f"world_T_lidar of shape {truth.shape}; expected (N, 4, 4) poses or None")
+    out: list[tuple[np.ndarray, np.ndarray] | None] = []
+    for k, loop in enumerate(loops):
+        q = _index(loop.query, len(truth), f"loops[{k}].query")
+        m = _index(loop.match, len(truth), f"loops[{k}].match")
+        if loop.match_T_query is None or not (np.isfinite(truth[q]).all() and np.isfinite(truth[m]).all()):
+            out.append(None)
+            continue
+        out.append((np.asarray(loop.match_T_query, np.float64), relative(truth[m], truth[q])))
+    return out
+
+
 def loop_pose_errors(
     loops: Sequence[PublishedLoop], world_T_lidar: np.ndarray | None
 ) -> list[tuple[float, float] | None]:
@@ -127,21 +192,29 @@ def loop_pose_errors(
 
     None: the loop has no pose, ``world_T_lidar`` is None, or either keyframe's true pose is not finite.
     """
-    if world_T_lidar is None:
-        return [None] * len(loops)
-    truth = np.asarray(world_T_lidar, np.float64)
-    if truth.ndim != 3 or truth.shape[1:] != (4, 4):
-        raise InputShapeError(f"world_T_lidar of shape {truth.shape}; expected (N, 4, 4) poses or None")
-    out: list[tuple[float, float] | None] = []
-    for k, loop in enumerate(loops):
-        q = _index(loop.query, len(truth), f"loops[{k}].query")
-        m = _index(loop.match, len(truth), f"loops[{k}].match")
-        if loop.match_T_query is None or not (np.isfinite(truth[q]).all() and np.isfinite(truth[m]).all()):
-            out.append(None)
-            continue
-        true_rel = relative(truth[m], truth[q])
-        out.append(relative_pose_error(np.asarray(loop.match_T_query, np.float64), true_rel))
-    return out
+    pairs = _estimates_and_truths(loops, world_T_lidar)
+    return [None if pair is None else relative_pose_error(*pair) for pair in pairs]
+
+
+def loop_pose_right(loops: Sequence[PublishedLoop], world_T_lidar: np.ndarray | None) -> list[bool | None]:
+    """Per loop whether its relative pose is right (:func:`pose_right`), or None where it cannot be judged
+    (as :func:`loop_pose_errors`)."""
+    return [None if pair is None else pose_right(*pair) for pair in _estimates_and_truths(loops, world_T_lidar)]
+
+
+def verified_loop_right(
+    loops: Sequence[PublishedLoop], *, positions: np.ndarray, world_T_lidar: np.ndarray | None, radius: float
+) -> np.ndarray:
+    """(L,) bool: which loops a verified loop's precision counts as right.
+
+    By pose (:func:`loop_pose_right`; a loop that cannot be judged is not right) when any loop's pose can be
+    judged; otherwise, with no pose to judge by (retrieval alone, or no true poses), by the radius rule
+    (:func:`loop_correct`).
+    """
+    verdicts = loop_pose_right(loops, world_T_lidar)
+    if all(v is None for v in verdicts):
+        return loop_correct(loops, positions, radius)
+    return np.array([v is True for v in verdicts], bool)
 
 
 def score_loops(
@@ -152,7 +225,8 @@ def score_loops(
     has_revisit: np.ndarray,
     radius: float,
 ) -> LoopScore:
-    """Precision, recall and pose error of ``loops`` (see the module docstring for the rule).
+    """Precision (by radius and by pose), recall, the pose groups and pose error of ``loops`` (the rule of the
+    module docstring).
 
     positions (N, 3) true keyframe positions (NaN: unknown); world_T_lidar (N, 4, 4) true
     LiDAR poses or None (no pose errors then); has_revisit (N,) bool: the keyframe has a
@@ -168,6 +242,7 @@ def score_loops(
         raise InputShapeError(f"world_T_lidar of shape {np.shape(world_T_lidar)}; expected ({len(pos)}, 4, 4)")
     correct = loop_correct(loops, pos, radius)
     errors = loop_pose_errors(loops, world_T_lidar)
+    verdicts = loop_pose_right(loops, world_T_lidar)
     closed = len({loop.query for loop, ok in zip(loops, correct, strict=True) if ok and revisit[loop.query]})
     true_revisits = int(revisit.sum())
     measured = np.array([e for e, ok in zip(errors, correct, strict=True) if ok and e is not None],
@@ -179,12 +254,16 @@ def score_loops(
         stats = {"trans_err_median": float(t50), "trans_err_p95": float(t95),
                  "yaw_err_median": float(y50), "yaw_err_p95": float(y95)}
     n_correct = int(correct.sum())
-    true_pose = sum(1 for e, ok in zip(errors, correct, strict=True)
-                    if not ok and e is not None and e[0] <= POSE_OK_M and e[1] <= POSE_OK_DEG)
+    right_within = sum(1 for v, ok in zip(verdicts, correct, strict=True) if v is True and ok)
+    right_beyond = sum(1 for v, ok in zip(verdicts, correct, strict=True) if v is True and not ok)
+    unjudged = sum(1 for v in verdicts if v is None)
+    judged = len(loops) - unjudged
     return LoopScore(
         loops=len(loops), correct=n_correct, precision=n_correct / len(loops) if loops else None,
         recall=closed / true_revisits if true_revisits else None, true_revisits=true_revisits, closed=closed,
-        posed=len(measured), wrong_with_true_pose=true_pose, **stats,
+        posed=len(measured), wrong_with_true_pose=right_beyond, right_within_radius=right_within,
+        right_beyond_radius=right_beyond, wrong_pose=judged - right_within - right_beyond, unjudged=unjudged,
+        precision_by_pose=(right_within + right_beyond) / len(loops) if judged else None, **stats,
     )
 
 
@@ -199,6 +278,32 @@ def fitness_sweep(fitness: np.ndarray, correct: np.ndarray, *, num_positives: in
     if not len(fit):
         return None
     return pr_sweep(-fit, np.asarray(correct, bool), num_positives=num_positives, num_queries=num_queries)
+
+
+def verified_fitness_sweep(
+    loops: Sequence[PublishedLoop],
+    fitness: Sequence[float] | np.ndarray,
+    *,
+    positions: np.ndarray,
+    world_T_lidar: np.ndarray | None,
+    has_revisit: np.ndarray,
+    radius: float,
+) -> PRResult | None:
+    """Precision-recall of verified loops swept over their fitness, a loop right as their precision counts it.
+
+    Right: :func:`verified_loop_right` (by pose when poses can be judged). Positive: every keyframe with a true
+    revisit and every query of a right loop (a right pose beyond the radius closes its query too). Loops with a
+    non-finite fitness are left out of the sweep; None without a loop to sweep.
+    """
+    loops = list(loops)
+    fit = np.asarray(fitness, np.float64).reshape(-1)
+    if len(fit) != len(loops):
+        raise InputShapeError(f"{len(fit)} fitness values for {len(loops)} loops; expected one per loop")
+    right = verified_loop_right(loops, positions=positions, world_T_lidar=world_T_lidar, radius=radius)
+    positive = np.array(has_revisit, bool, copy=True)
+    positive[[loop.query for loop, ok in zip(loops, right, strict=True) if ok]] = True
+    keep = np.isfinite(fit)
+    return fitness_sweep(fit[keep], right[keep], num_positives=int(positive.sum()), num_queries=len(positive))
 
 
 # ============================================================================ pose graph

@@ -1,7 +1,7 @@
 """LCPR on a rosbag2: the bag run through the loop detector and scored against the bag's own odometry.
 
 :func:`evaluate_bag` reads synchronised frames with :func:`msg_tools.bags.read_frames`, runs
-:class:`lcpr_core.lcpr.detector.LoopDetector` frame by frame (collecting every candidate: the
+:class:`lcpr_core.detector.LoopDetector` frame by frame (collecting every candidate: the
 precision-recall sweep thresholds afterwards; ``max_distance`` is only the operating point
 reported and drawn), runs the Scan Context baseline on the same keyframes and returns an
 :class:`~lcpr_core.evaluation.EvaluationReport`; :func:`write_outputs` writes report.json,
@@ -23,9 +23,9 @@ added to a pose graph over a seeded drift of the ground truth
 ``odometry="kiss-icp"`` (``lcpr_eval --odometry kiss-icp``): the detector's poses come from KISS-ICP run
 on the bag's own clouds (every frame, in order, started at the bag's first pose), as on a robot without
 another odometry; the bag's odometry stays the ground truth. The KISS-ICP odometry and every verified
-candidate are then replayed through the online back end (:mod:`lcpr_core.backend_replay`): ATE RMSE before
+candidate are then replayed through the online back end (:mod:`lcpr_core.backend.replay`): ATE RMSE before
 and after against the bag's odometry (``report.backend``) and backend.png. The default, ``"bag"``, hands
-the detector the bag's odometry, as before.
+the detector the bag's odometry.
 """
 from __future__ import annotations
 
@@ -44,7 +44,17 @@ from typing import Any, Generic, TypeVar, cast
 import numpy as np
 
 from lcpr_common.progress import progress_bar
-from lcpr_core.backend_replay import BackendEvaluation, StreamRecorder, evaluate_backend
+from lcpr_core.backend.lidar_odometry import KissConfig, KissOdometry
+from lcpr_core.backend.replay import BackendEvaluation, StreamRecorder, evaluate_backend
+from lcpr_core.detector import (
+    Candidate,
+    DescribedBatch,
+    DetectorConfig,
+    Frame,
+    LoopDetector,
+    MatchConfig,
+    Result,
+)
 from lcpr_core.errors import InvalidValueError, LcprError
 from lcpr_core.evaluation import (
     EvaluationReport,
@@ -59,17 +69,7 @@ from lcpr_core.evaluation import (
 )
 from lcpr_core.keyframes import KeyframeConfig
 from lcpr_core.lcpr.describer import Describer, ModelConfig
-from lcpr_core.lcpr.detector import (
-    Candidate,
-    DescribedBatch,
-    DetectorConfig,
-    Frame,
-    LoopDetector,
-    MatchConfig,
-    Result,
-)
 from lcpr_core.lcpr.preprocess.camera import CameraInput
-from lcpr_core.lidar_odometry import KissConfig, KissOdometry
 from lcpr_core.loop_report import PublishedLoop, pose_graph_proof
 from lcpr_core.posegraph import DriftModel
 from lcpr_core.pretrained import effective_max_distance

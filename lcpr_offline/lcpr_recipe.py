@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from lcpr_core.atomic import save_figure
-from lcpr_core.lcpr.eval_report import online, online_methods
+from lcpr_core.evaluation.eval_report import online, online_methods
 from lcpr_core.lcpr.training.recipe_rules import reusable_report
 from lcpr_core.lcpr.training.recipe_scores import GATES
 

@@ -7,16 +7,17 @@
 3. replays the bag over DDS with its original stamps, listening to what the node publishes;
 4. compares the loops on ``~/loop_closure`` (verified against the LiDAR) with the true
    revisits (<= 9 m, >= 30 s older) and prints, beside what retrieval alone would have
-   published (the nearest descriptor under the bundled threshold), precision, recall,
-   the loops' relative-pose error against the drive's ground truth, latency, and what a
-   pose graph gains: the drive's poses with seeded odometry drift, the verified loops
-   added as between-factors with their covariances, optimised with GTSAM (ATE before and
-   after, ``posegraph.png``).
+   published (the nearest descriptor under the bundled threshold, judged by the 9 m rule),
+   the loops by their relative pose against the drive's ground truth (right within 9 m,
+   right beyond it: a valid constraint, wrong: harmful; :mod:`lcpr_core.loop_report`),
+   precision by pose, recall, the pose error, latency, and what a pose graph gains: the
+   drive's poses with seeded odometry drift, the verified loops added as between-factors
+   with their covariances, optimised with GTSAM (ATE before and after, ``posegraph.png``).
 
 ``--odometry kiss-icp`` adds what a robot without another odometry gets: KISS-ICP run on the drive's own
 LiDAR (rendered every metre along the same path in the same world, :mod:`lcpr_offline.drive_odometry`:
 the bag's 5 m keyframes are too far apart for it), the node's verified candidates as loops (and its ``~/up``), and the
-online back end (:mod:`lcpr_core.backend_replay`): ATE RMSE before and after against the drive's ground
+online back end (:mod:`lcpr_core.backend.replay`): ATE RMSE before and after against the drive's ground
 truth, and ``backend.png``. The default (``drift``) prints only the seeded-drift pose graph above.
 """
 from __future__ import annotations
@@ -41,7 +42,7 @@ from lcpr_common.progress import progress_iter
 from lcpr_core.atomic import write_bytes_atomic
 from lcpr_core.errors import LcprError
 from lcpr_core.evaluation import recall_at_full_precision
-from lcpr_core.loop_report import PublishedLoop, fitness_sweep, pose_graph_proof, score_loops
+from lcpr_core.loop_report import LoopScore, PublishedLoop, pose_graph_proof, score_loops, verified_fitness_sweep
 from lcpr_core.metrics import plot_pr_curve, pr_sweep
 from lcpr_core.posegraph import DriftModel
 from lcpr_core.pretrained import BUNDLED, BUNDLED_MAX_DISTANCE, SEEDED, describe_weights, resolve_weights
@@ -50,7 +51,7 @@ from msg_tools.frames import NUSCENES_TOPICS
 
 if TYPE_CHECKING:
     from citysim import SyntheticDrive
-    from lcpr_core.backend_replay import BackendEvaluation
+    from lcpr_core.backend.replay import BackendEvaluation
 
 RADIUS = 9.0  # m: a loop is correct when the matched keyframe is this close (the paper's threshold)
 MIN_GAP = 30.0  # s: the node excludes younger keyframes, and so does the ground truth
@@ -221,7 +222,7 @@ def published_loops(truth: Truth, loops: list[tuple[float, float]], rows: dict[t
 def kiss_icp_backend(args: argparse.Namespace, out) -> tuple[BackendEvaluation, int]:
     """(KISS-ICP on the drive's own LiDAR corrected by the back end with the node's verified candidates,
     how many of those named a stamp the dense drive lacks)."""
-    from lcpr_core.backend_replay import evaluate_backend
+    from lcpr_core.backend.replay import evaluate_backend
     from lcpr_offline.drive_odometry import dense_drive, record_drive
 
     from .outputs import row_covariance, row_pose
@@ -268,11 +269,10 @@ def report(args, truth: Truth, out, detector: dict, inputs: dict, replay_s: floa
     dist = np.array([d for d, _ in best.values()])
     ok = np.array([c for _, c in best.values()], bool)
     pr = pr_sweep(dist, ok, num_positives=n_true, num_queries=len(truth.stamps)) if len(dist) else None
-    # verified: each published loop swept over its fitness (a loop needs fitness >= t)
+    # verified: each published loop swept over its fitness (a loop needs fitness >= t), right as by its precision
     fitness = np.array([by_pair.get(loop, {}).get("fitness", np.nan) for loop in out.loops])
-    v_ok = np.array([truth.correct(q, m) for q, m in out.loops], bool)
-    keep = np.isfinite(fitness)
-    pr_verified = fitness_sweep(fitness[keep], v_ok[keep], num_positives=n_true, num_queries=len(truth.stamps))
+    pr_verified = verified_fitness_sweep(loops, fitness, positions=positions, world_T_lidar=world_T_lidar,
+                                         has_revisit=truth.has_revisit, radius=RADIUS)
     plot = args.out / "pr_curve.png"
     if pr is not None:
         plot_pr_curve(pr, plot, title="lcpr_node on the demo drive (top-1 descriptor distance)")
@@ -298,13 +298,8 @@ def report(args, truth: Truth, out, detector: dict, inputs: dict, replay_s: floa
     print(f"  weights:            {weights}")
     print(f"  true revisits:      {n_true} keyframes have an earlier keyframe within {RADIUS:.0f} m "
           f"and >= {MIN_GAP:.0f} s older")
-    wrong = verified.loops - verified.correct
-    valid = (f" (beyond {RADIUS:.0f} m, yet {verified.wrong_with_true_pose} with a relative pose within 0.3 m / 2 deg "
-             "of the truth: a valid constraint)") if verified.wrong_with_true_pose else ""
-    print(f"  loops published:    {verified.loops} on ~/loop_closure ({mode}), {verified.correct} correct, "
-          f"{wrong} wrong{valid}")
-    print(f"  precision:          {_f(verified.precision)}   (retrieval alone, nearest descriptor under "
-          f"{BUNDLED_MAX_DISTANCE:.2f}: {_f(baseline.precision)})")
+    for line in loop_lines(verified, baseline, mode=mode):
+        print(line)
     print(f"  recall:             {_f(verified.recall)} ({verified.closed} of {n_true} revisiting keyframes closed; "
           f"retrieval alone: {_f(baseline.recall)})")
     if verified.trans_err_median is not None:
@@ -335,6 +330,7 @@ def report(args, truth: Truth, out, detector: dict, inputs: dict, replay_s: floa
     summary = {
         "weights": weights, "keyframes": len(truth.stamps), "true_revisits": n_true, "verify": not args.no_verify,
         "loops": verified.loops, "correct": verified.correct, "precision": verified.precision,
+        "precision_by_pose": verified.precision_by_pose,
         "recall": verified.recall, "verified": verified.to_dict(), "retrieval_only": baseline.to_dict(),
         "pose_graph": None if proof is None else proof.to_dict(),
         "backend": None if backend is None else backend.to_dict(),
@@ -347,6 +343,17 @@ def report(args, truth: Truth, out, detector: dict, inputs: dict, replay_s: floa
     write_bytes_atomic(args.out / "demo_report.json", json.dumps(summary, indent=2, default=str).encode())
     print(f"  report:             {args.out / 'demo_report.json'}")
     return 0
+
+
+def loop_lines(verified: LoopScore, baseline: LoopScore, *, mode: str) -> list[str]:
+    """The summary's lines on the published loops: their groups by pose and the precision, beside retrieval
+    alone (which has no pose: judged by the radius rule)."""
+    within = f"within {RADIUS:.0f} m"
+    precision = (f"{_f(verified.precision_by_pose)} by pose, {_f(verified.precision)} {within}"
+                 if verified.judged_by_pose else f"{_f(verified.precision)} {within}")
+    return [f"  loops published:    {verified.loops} on ~/loop_closure ({mode}): {verified.groups_text(RADIUS)}",
+            f"  precision:          {precision}   (retrieval alone, nearest descriptor under "
+            f"{BUNDLED_MAX_DISTANCE:.2f}: {_f(baseline.precision)} {within})"]
 
 
 def _f(value: float | None) -> str:

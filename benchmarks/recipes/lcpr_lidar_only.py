@@ -37,8 +37,8 @@ from pathlib import Path
 
 from lcpr_common.progress import progress_bar
 from lcpr_core.atomic import save_torch, write_atomic
+from lcpr_core.evaluation.eval_report import online_methods
 from lcpr_core.lcpr.checkpoint import read_released
-from lcpr_core.lcpr.eval_report import online_methods
 from lcpr_core.lcpr.training.recipe_rules import (
     LIDAR_ONLY_MAX_RECALL_DROP,
     LIDAR_ONLY_MIN_F1_GAIN,

@@ -12,7 +12,7 @@ reference, ``odom_poses.txt`` as the odometry (else the reference) and ``times.t
 
 Every scan is a keyframe. Methods, fed the same scans in the same order:
 
-- ``lcpr``, ``scan_context``, ``fused``: :class:`~lcpr_core.lcpr.detector.LoopDetector` with the bundled
+- ``lcpr``, ``scan_context``, ``fused``: :class:`~lcpr_core.detector.LoopDetector` with the bundled
   weights, all six camera slots empty and the node's defaults (top 10 candidates among keyframes > 30 s older,
   verification with its submaps) but ``match.method``: candidates from the LCPR descriptor, from Scan Context
   (``lcpr_core.scan_context``) or both; the loop is ``Result.loop`` (the verified candidate with the best
@@ -26,13 +26,15 @@ Every scan is a keyframe. Methods, fed the same scans in the same order:
 
 Scoring against the reference poses (the SLAM system's own estimates after loop closing):
 
-- a loop is correct when its keyframes are < 5 m apart and its relative pose is within 0.5 m and 3 deg of
-  the reference's (full rotation angle); otherwise wrong, counted apart as "right pose, >= 5 m" (a usable
-  constraint between keyframes farther apart) and "wrong pose" (what would hurt a pose graph);
+- every loop is judged by its relative pose against the reference's, by the project's one rule
+  (:func:`lcpr_core.loop_report.pose_right`: within 0.3 m and 2 deg of the whole rotation angle), in three
+  groups: right pose with its keyframes < 5 m apart ("correct"), right pose >= 5 m apart (a valid constraint
+  between keyframes farther apart) and wrong pose (what would hurt a pose graph); precision by pose is the
+  right ones over all loops;
 - revisiting queries: keyframes with an older keyframe < 3 m away, > 30 s older and turned < 30 deg
   (:func:`lcpr_offline.verification_pairs.true_pairs`); closed when the keyframe's loop is correct. A
   MapClosures closure joins two local maps (pose: query map anchor from reference map anchor): it is correct
-  when that pose is within 0.5 m / 3 deg and the maps hold keyframes < 5 m apart, and then closes every
+  when that pose is right by the same rule and the maps hold keyframes < 5 m apart, and then closes every
   revisiting query of the query map with a true match in the reference map (generous to it);
 - time per scan: everything a method does for one scan, one thread each (median, and mean, which for
   MapClosures carries its per-map query), on the CPU named.
@@ -55,9 +57,11 @@ from typing import Any
 
 import numpy as np
 
+from lcpr_common.cli import tool_main
+from lcpr_core.loop_report import POSE_OK_DEG, POSE_OK_M, pose_right
+
 DEFAULT_SETS = ("walk_loop", "campus")
-CORRECT_M = 5.0  # a loop's keyframes closer than this ...
-POSE_OK_M, POSE_OK_DEG = 0.5, 3.0  # ... and its pose this close to the reference's: correct
+CORRECT_M = 5.0  # a loop's keyframes closer than this, with the right pose (pose_right), are correct
 TOP_K = 10
 MC_MAP_LENGTHS = (5.0, 10.0, 20.0, 100.0)  # m of travel per MapClosures local map (100: its pipeline's own)
 METHODS = ("lcpr", "scan_context", "fused")
@@ -125,8 +129,9 @@ class Loop:
     match: int
     match_T_query: np.ndarray
     score: float  # fitness (keyframe methods) or RANSAC inliers (MapClosures)
-    correct: bool = False
+    correct: bool = False  # right pose, < 5 m apart
     near: bool = False  # the keyframes (or maps) are < 5 m apart
+    right_pose: bool = False  # the relative pose is right (pose_right), however far apart
     err_m: float = float("nan")
     err_deg: float = float("nan")
     closes: list[int] = field(default_factory=list)  # revisiting queries this loop closes
@@ -140,24 +145,27 @@ class MethodResult:
     def summary(self, revisiting: int) -> dict[str, Any]:
         closed = sorted({q for loop in self.loops if loop.correct for q in loop.closes})
         correct = sum(loop.correct for loop in self.loops)
-        pose_ok = sum(loop.err_m <= POSE_OK_M and loop.err_deg <= POSE_OK_DEG for loop in self.loops)
+        pose_ok = sum(loop.right_pose for loop in self.loops)
         s = np.asarray(self.seconds)
         return {"loops": len(self.loops), "correct": correct, "wrong": len(self.loops) - correct,
                 "wrong_right_pose_far": pose_ok - correct, "wrong_pose": len(self.loops) - pose_ok,
+                "right_within_radius": correct, "right_beyond_radius": pose_ok - correct,
+                "precision_by_pose": pose_ok / len(self.loops) if self.loops else None,
                 "revisiting_closed": len(closed), "revisiting": revisiting,
                 "ms_per_scan_median": 1e3 * float(np.median(s)) if len(s) else float("nan"),
                 "ms_per_scan_mean": 1e3 * float(np.mean(s)) if len(s) else float("nan")}
 
 
 def score_keyframe_loop(loop: Loop, seq: ScanSequence, truth: dict[int, set[int]]) -> Loop:
-    """Correct (< 5 m, pose within 0.5 m / 3 deg of the reference) and which revisiting query it closes."""
+    """Its pose judged (pose_right), correct (< 5 m and the right pose) and which revisiting query it closes."""
     from lcpr_offline.verification_pairs import pose_error
 
     P = seq.poses
     reference = np.linalg.inv(P[loop.match]) @ P[loop.query]
     loop.err_m, loop.err_deg = pose_error(loop.match_T_query, reference)
     loop.near = float(np.linalg.norm(P[loop.query, :3, 3] - P[loop.match, :3, 3])) < CORRECT_M
-    loop.correct = loop.near and loop.err_m <= POSE_OK_M and loop.err_deg <= POSE_OK_DEG
+    loop.right_pose = pose_right(loop.match_T_query, reference)
+    loop.correct = loop.near and loop.right_pose
     loop.closes = [loop.query] if loop.query in truth else []
     return loop
 
@@ -170,7 +178,7 @@ def recording_detector(config: Any) -> Any:
     the lcpr (scan_context) detector's ``Result.loop`` is the verified candidate with the best fitness among the
     descriptor's (Scan Context's) proposals, and its time is the run's minus what only the other method needed.
     """
-    from lcpr_core.lcpr.detector import LoopDetector
+    from lcpr_core.detector import LoopDetector
 
     class Recording(LoopDetector):
         def reset(self) -> None:
@@ -178,20 +186,6 @@ def recording_detector(config: Any) -> Any:
             self.search_s = {"lcpr": 0.0, "scan_context": 0.0}
             self.cost: dict[int, float] = {}  # candidate keyframe -> preparing its cloud + verifying it
             self._order: list[int] = []  # candidates whose cloud was found, in verification order
-
-        def _search_descriptor(self, *args: Any, **kwargs: Any) -> Any:
-            tic = time.perf_counter()
-            hits = super()._search_descriptor(*args, **kwargs)
-            self.search_s["lcpr"] = time.perf_counter() - tic
-            self.proposed["lcpr"] = [h.id for h in hits]
-            return hits
-
-        def _search_scan_context(self, *args: Any, **kwargs: Any) -> Any:
-            tic = time.perf_counter()
-            hits = super()._search_scan_context(*args, **kwargs)
-            self.search_s["scan_context"] = time.perf_counter() - tic
-            self.proposed["scan_context"] = [h.id for h in hits]
-            return hits
 
         def _prepared_cloud(self, ref: Any) -> Any:
             keyframe_id = ref.key[1]  # the match keyframe (after the detector's token; the stitched ones follow)
@@ -211,6 +205,22 @@ def recording_detector(config: Any) -> Any:
             self._verify_times: list[float] = []
             return super().process(frame)
 
+    class TimedPart:
+        """One part of the fused proposer, recording for the detector what it proposed and how long it searched."""
+
+        def __init__(self, inner: Any, owner: Any, method: str) -> None:
+            self.inner, self.owner, self.method = inner, owner, method
+
+        def __getattr__(self, name: str) -> Any:
+            return getattr(self.inner, name)
+
+        def search(self, *args: Any, **kwargs: Any) -> Any:
+            tic = time.perf_counter()
+            hits = self.inner.search(*args, **kwargs)
+            self.owner.search_s[self.method] = time.perf_counter() - tic
+            self.owner.proposed[self.method] = [h.id for h in hits]
+            return hits
+
     class TimedVerifier:
         """The detector's verifier, timing each registration for the detector (``config`` is the same object)."""
 
@@ -229,6 +239,9 @@ def recording_detector(config: Any) -> Any:
     detector = Recording(config)
     detector.reset()
     detector.verifier = TimedVerifier(detector.verifier, detector)  # type: ignore[assignment]
+    fused: Any = detector.proposer  # lcpr_core.lcpr.proposers.FusedProposer: its two parts searched and timed apart
+    fused.descriptor = TimedPart(fused.descriptor, detector, "lcpr")
+    fused.scan_context = TimedPart(fused.scan_context, detector, "scan_context")
     return detector
 
 
@@ -236,9 +249,9 @@ class KeyframeMethods:
     """Our detector's three ``match.method`` values (lcpr, scan_context, fused) on one sequence, scan by scan."""
 
     def __init__(self, *, threads: int, submap: str | None = None) -> None:
+        from lcpr_core.detector import DetectorConfig, MatchConfig
         from lcpr_core.keyframes import KeyframeConfig
         from lcpr_core.lcpr.describer import ModelConfig
-        from lcpr_core.lcpr.detector import DetectorConfig, MatchConfig
         from lcpr_core.pretrained import BUNDLED
 
         config = DetectorConfig(model=ModelConfig(weights=BUNDLED, threads=threads),
@@ -252,7 +265,7 @@ class KeyframeMethods:
         self.results = {m: MethodResult() for m in METHODS}
 
     def step(self, i: int, stamp: float, points: np.ndarray, odom_pose: np.ndarray) -> None:
-        from lcpr_core.lcpr.detector import Frame
+        from lcpr_core.detector import Frame
 
         det = self.detector
         tic = time.perf_counter()
@@ -324,10 +337,10 @@ class MapClosuresRun:
             err_m, err_deg = pose_error(query_T_ref, reference)
             gap = np.linalg.norm(P[q0:q1, None, :3, 3] - P[None, r0:r1, :3, 3], axis=-1).min()
             near = bool(gap < CORRECT_M)
-            correct = near and err_m <= POSE_OK_M and err_deg <= POSE_OK_DEG
+            right = pose_right(query_T_ref, reference)
             closes = [q for q in range(q0, q1) if any(r0 <= m < r1 for m in truth.get(q, ()))]
-            self.result.loops.append(Loop(query, ref, np.linalg.inv(query_T_ref), float(inliers), correct, near,
-                                          err_m, err_deg, closes))
+            self.result.loops.append(Loop(query, ref, np.linalg.inv(query_T_ref), float(inliers), near and right,
+                                          near, right, err_m, err_deg, closes))
         return self.result
 
 
@@ -367,17 +380,25 @@ def run_sequence(seq: ScanSequence, args: argparse.Namespace) -> dict[str, Any]:
 
 def print_table(name: str, res: dict[str, Any]) -> None:
     print(f"\n{name}: {res['scans']} scans, {res['revisiting_queries']} revisiting queries ({res['poses']})")
-    print(f"  {'method':30s} {'loops':>5s} {'correct':>7s} {'wrong':>5s} {'(>=5 m':>6s} {'bad pose)':>9s} "
-          f"{'revisits closed':>15s} {'ms/scan med':>11s} {'mean':>7s}")
+    print(f"  {'method':30s} {'loops':>5s} {'right pose: <5 m':>16s} {'>=5 m':>5s} {'wrong pose':>10s} "
+          f"{'precision':>9s} {'revisits closed':>15s} {'ms/scan med':>11s} {'mean':>7s}")
     for method, s in res["methods"].items():
-        print(f"  {method:30s} {s['loops']:5d} {s['correct']:7d} {s['wrong']:5d} {s['wrong_right_pose_far']:6d} "
-              f"{s['wrong_pose']:9d} "
+        print(f"  {method:30s} {s['loops']:5d} {s['correct']:16d} {s['wrong_right_pose_far']:5d} "
+              f"{s['wrong_pose']:10d} {_precision_by_pose(s):>9s} "
               f"{s['revisiting_closed']:7d} / {s['revisiting']:<5d} {s['ms_per_scan_median']:11.1f} "
               f"{s['ms_per_scan_mean']:7.1f}")
 
 
+def _precision_by_pose(summary: dict[str, Any]) -> str:
+    """Right poses (< 5 m and beyond) over all loops, from counts every results.json holds (--merge reads any)."""
+    if not summary["loops"]:
+        return "-"
+    return f"{(summary['correct'] + summary['wrong_right_pose_far']) / summary['loops']:.2f}"
+
+
 def plot(results: dict[str, dict[str, Any]], path: Path, cpu: str) -> None:
-    """Per sequence: revisiting queries closed, correct and wrong loops of every method (one bar group each)."""
+    """Per sequence: revisiting queries closed and the loops of every method by pose (one bar group each):
+    right pose < 5 m apart, right pose farther apart (a valid constraint), wrong pose (harmful)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -388,13 +409,14 @@ def plot(results: dict[str, dict[str, Any]], path: Path, cpu: str) -> None:
         methods = list(res["methods"])
         x = np.arange(len(methods))
         bars = (("revisiting_closed", "revisiting queries closed", "tab:blue"),
-                ("correct", "correct loops (< 5 m, pose right)", "tab:green"),
-                ("wrong_right_pose_far", "wrong: pose right, >= 5 m apart", "tab:orange"),
-                ("wrong_pose", "wrong: pose off", "tab:red"))
+                ("correct", "right pose, < 5 m apart", "tab:green"),
+                ("wrong_right_pose_far", "right pose, >= 5 m apart (a valid constraint)", "tab:olive"),
+                ("wrong_pose", "wrong pose (harmful)", "tab:red"))
         for j, (key, label, colour) in enumerate(bars):
             ax.bar(x + (j - 1.5) * 0.2, [res["methods"][m][key] for m in methods], 0.2, label=label, color=colour)
         ax.axhline(res["revisiting_queries"], color="k", ls=":", lw=1, label="revisiting queries")
-        ax.set_xticks(x, [m.replace(" (", "\n(") for m in methods], fontsize=7, rotation=30, ha="right")
+        ax.set_xticks(x, [m.replace(" (", "\n(") + f"\nprecision by pose {_precision_by_pose(res['methods'][m])}"
+                          for m in methods], fontsize=7, rotation=30, ha="right")
         ax.set_title(f"{name}: {res['scans']} scans")
         ax.legend(fontsize=7)
     fig.suptitle(f"LiDAR-only loops: match.method values and MapClosures ({cpu})", fontsize=9)
@@ -417,6 +439,7 @@ def merge(files: list[Path], out: Path) -> int:
     return 0
 
 
+@tool_main
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", type=Path, default=None, help="the livox_hku folder (default: ../shared/data/livox_hku)")

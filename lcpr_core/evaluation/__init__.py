@@ -31,10 +31,13 @@ distances (Scan Context) through a ranked retrieval the caller provides.
 Verified loops ("LCPR + verification", :func:`evaluate_verified`): with geometric
 verification on, each keyframe's loop is the verified candidate with the best
 registration fitness (``Result.loop``), or none. They are scored by the rule of
-:mod:`lcpr_core.loop_report` (the one the demo uses): precision over the loops,
-recall over the keyframes with a true loop, relative-pose error against the ground
-truth; the precision-recall sweep (max F1, recall at precision 1) uses the fitness
-of each keyframe's loop as its score (higher accepts first).
+:mod:`lcpr_core.loop_report` (the one the demo uses): judged by their poses, in three
+groups (right pose within the radius, right pose beyond it: a valid constraint, wrong
+pose: harmful), precision over the loops by pose, recall over the keyframes with a
+true loop, relative-pose error against the ground truth; the precision-recall sweep
+(max F1, recall at precision 1) uses the fitness of each keyframe's loop as its score
+(higher accepts first) and counts a loop right as the precision does. Retrieval has
+no pose: the radius rule alone judges it.
 """
 from __future__ import annotations
 

@@ -1,4 +1,9 @@
-"""The evaluation report: its JSON file and the console tables (both protocols, latency, verified loops)."""
+"""The evaluation report: its JSON file and the console tables (both protocols, latency, verified loops).
+
+Retrieval is judged by the radius rule (it has no pose); verified loops by their poses
+(:mod:`lcpr_core.loop_report`): right pose within the radius, right pose beyond it (a valid
+constraint) and wrong pose, with the precision over those.
+"""
 from __future__ import annotations
 
 import dataclasses
@@ -7,17 +12,26 @@ import math
 import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from ..atomic import atomic_path
+from ..loop_report import POSE_OK_DEG, POSE_OK_M, LoopScore
 from .latency import LatencyStats
 from .protocols import GroundTruth, OperatingPoint, ProtocolResult
 from .results import MethodResult, VerifiedLoops
 
-if TYPE_CHECKING:
-    from ..backend_replay import BackendEvaluation
+
+class BackendSummary(Protocol):
+    """What the report needs of a pose-graph back end's run (lcpr_core.backend.replay.BackendEvaluation has it):
+    typed here, so that the evaluation does not import the back end that consumes the detectors."""
+
+    @property
+    def odometry_name(self) -> str: ...  # what made the odometry
+    def to_dict(self) -> dict[str, Any]: ...  # report.json's "backend"
+    def text(self) -> str: ...  # its console lines
+    def write_plot(self, path: str | os.PathLike[str], *, title: str) -> None: ...  # backend.png
 
 
 @dataclass
@@ -31,7 +45,7 @@ class EvaluationReport:
     setup_time_s: float = 0.0  # of wall_time_s: building the detector (loading, auto's measurement, graph capture)
     detect_time_s: float = 0.0  # of wall_time_s: the frames read and through the detector (then the evaluation)
     verified: VerifiedLoops | None = None  # LCPR + verification; None when verification was off
-    backend: BackendEvaluation | None = None  # the bag's LiDAR odometry corrected by the back end; None = not run
+    backend: BackendSummary | None = None  # the bag's LiDAR odometry corrected by the back end; None = not run
 
     def to_dict(self) -> dict[str, Any]:
         return _jsonable({
@@ -152,20 +166,24 @@ def verification_table(report: EvaluationReport) -> str:
         return ""
     retrieval = next((m for m in report.methods if m.name == "LCPR"), report.methods[0] if report.methods else None)
     left = "LCPR (retrieval)" if retrieval is None else f"{retrieval.name} (retrieval)"
-    width = max(22, len(v.name) + 2, len(left) + 2)
     s = v.score
+    radius = report.ground_truth.radius
+    by_pose = f"pose {POSE_OK_M:g} m / {POSE_OK_DEG:g} deg" if s.judged_by_pose else f"within {radius:g} m"
+    width = max(22, len(v.name) + 2, len(left) + 2, len(by_pose) + 2)
     out = [f"{'':<34}{left:>{width}}{v.name:>{width}}"]
 
     def row(label: str, a: str, b: str) -> None:
         out.append(f"{label:<34}{a:>{width}}{b:>{width}}")
 
     point = None if retrieval is None else retrieval.online.operating_point
-    row("online     loops (correct/wrong)", "-" if point is None else
-        f"{point.true_positives + point.false_positives} ({_op(point)})",
-        f"{s.loops} ({s.correct}/{s.loops - s.correct})")
+    row("online     loops (right/wrong)", "-" if point is None else
+        f"{point.true_positives + point.false_positives} ({_op(point)})", _verified_loops(s))
+    row(f"           right pose <= / > {radius:g} m", "-",
+        f"{s.right_within_radius} / {s.right_beyond_radius}" if s.judged_by_pose else "-")
     row("online     precision / recall",
         "-" if point is None else f"{_fmt(point.precision, '.2f')} / {_fmt(point.recall, '.2f')}",
-        f"{_fmt(s.precision, '.2f')} / {_fmt(s.recall, '.2f')}")
+        f"{_fmt(s.headline_precision, '.2f')} / {_fmt(s.recall, '.2f')}")
+    row("           right means", f"within {radius:g} m", by_pose)
     row("online     max F1 (R at P=1)",
         "-" if retrieval is None else
         f"{_fmt(retrieval.online.max_f1)} ({_fmt(retrieval.online.recall_at_full_precision, '.2f')})",
@@ -184,6 +202,14 @@ def verification_table(report: EvaluationReport) -> str:
     if v.base_T_lidar_source:
         out.append(f"loop poses vs ground truth: base_T_lidar from {v.base_T_lidar_source}")
     return "\n".join(out)
+
+
+def _verified_loops(s: LoopScore) -> str:
+    """'loops (right/wrong)': by pose (and how many cannot be judged), or by the radius rule without poses."""
+    if not s.judged_by_pose:
+        return f"{s.loops} ({s.correct}/{s.loops - s.correct})"
+    unjudged = f", {s.unjudged} no pose" if s.unjudged else ""
+    return f"{s.loops} ({s.right_within_radius + s.right_beyond_radius}/{s.wrong_pose}{unjudged})"
 
 
 def _err(metres: float | None, degrees: float | None) -> str:

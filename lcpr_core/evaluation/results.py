@@ -1,5 +1,6 @@
 """What a method produced on a run and how it scored: the retrieval methods (both protocols and their
-latency) and the verified loops ("LCPR + verification", scored by :mod:`lcpr_core.loop_report`)."""
+latency, judged by the radius rule) and the verified loops ("LCPR + verification", scored by
+:mod:`lcpr_core.loop_report`: judged by their poses)."""
 from __future__ import annotations
 
 import dataclasses
@@ -14,10 +15,11 @@ from ..loop_report import (
     LoopScore,
     PoseGraphProof,
     PublishedLoop,
-    fitness_sweep,
     loop_correct,
     loop_pose_errors,
+    loop_pose_right,
     score_loops,
+    verified_fitness_sweep,
 )
 from ..metrics import PRResult
 from .latency import LatencyStats, latency_stats
@@ -91,7 +93,9 @@ class VerifiedLoops:
 
     ``pr`` sweeps the loops' fitness (a loop is accepted when its fitness is at least
     the threshold); its ``thresholds`` are the negated fitness values (pr_sweep accepts
-    at or below a threshold), :attr:`max_f1_min_fitness` gives the fitness itself.
+    at or below a threshold), :attr:`max_f1_min_fitness` gives the fitness itself. A loop
+    counts as right as its precision counts it (:func:`lcpr_core.loop_report.verified_loop_right`:
+    by pose when poses can be judged).
     """
 
     name: str
@@ -99,8 +103,9 @@ class VerifiedLoops:
     pr: PRResult | None  # None: no loop or no positive keyframe
     loops: tuple[PublishedLoop, ...] = field(default=(), repr=False)  # keyframe rows, one loop per query at most
     fitness: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)  # (L,)
-    correct: np.ndarray = field(default_factory=lambda: np.zeros(0, bool), repr=False)  # (L,)
+    correct: np.ndarray = field(default_factory=lambda: np.zeros(0, bool), repr=False)  # (L,) within the radius
     pose_errors: tuple[tuple[float, float] | None, ...] = field(default=(), repr=False)  # (m, deg) or None
+    pose_right: tuple[bool | None, ...] = field(default=(), repr=False)  # right pose; None: cannot be judged
     pose_graph: PoseGraphProof | None = None  # the loops in a pose graph over drifted odometry
     pose_graph_note: str = ""  # why there is no pose graph
     base_T_lidar: np.ndarray | None = None  # the extrinsic the ground truth LiDAR poses used
@@ -129,13 +134,18 @@ class VerifiedLoops:
             },
             "accepted_loops": [
                 {"query": loop.query, "match": loop.match, "fitness": float(f), "correct": bool(ok),
-                 "trans_err_m": None if err is None else err[0], "yaw_err_deg": None if err is None else err[1]}
-                for loop, f, ok, err in zip(self.loops, self.fitness, self.correct, self.pose_errors, strict=True)
+                 "trans_err_m": None if err is None else err[0], "yaw_err_deg": None if err is None else err[1],
+                 "right_pose": right}
+                for loop, f, ok, err, right in zip(self.loops, self.fitness, self.correct, self.pose_errors,
+                                                   self._pose_right(), strict=True)
             ],
             "pose_graph": None if self.pose_graph is None else self.pose_graph.to_dict(),
             "pose_graph_note": self.pose_graph_note,
             "base_T_lidar": self.base_T_lidar, "base_T_lidar_source": self.base_T_lidar_source,
         }
+
+    def _pose_right(self) -> tuple[bool | None, ...]:
+        return self.pose_right if len(self.pose_right) == len(self.loops) else (None,) * len(self.loops)
 
 
 def evaluate_verified(
@@ -148,9 +158,10 @@ def evaluate_verified(
 ) -> VerifiedLoops:
     """Score verified loops (keyframe rows of ``gt``, at most one per query) against ``gt``.
 
-    ``world_T_lidar`` (N, 4, 4) true LiDAR poses (NaN rows: unknown) give the pose errors.
-    The sweep counts as positive every keyframe with a true loop and every query of a
-    correct loop, as the online protocol does.
+    ``world_T_lidar`` (N, 4, 4) true LiDAR poses (NaN rows: unknown) give the pose errors and judge
+    each loop by its pose. The sweep is :func:`~lcpr_core.loop_report.verified_fitness_sweep`: a loop
+    right as the precision counts it, positive every keyframe with a true loop and every query of a
+    right loop, as the online protocol does.
     """
     loops = tuple(loops)
     fit = np.asarray(fitness, np.float64).reshape(-1)
@@ -162,8 +173,8 @@ def evaluate_verified(
     score = score_loops(loops, positions=gt.positions, world_T_lidar=world_T_lidar, has_revisit=gt.has_loop,
                         radius=gt.radius)
     correct = loop_correct(loops, gt.positions, gt.radius)
-    positive = gt.has_loop.copy()
-    positive[[q for q, ok in zip(queries, correct, strict=True) if ok]] = True
-    pr = fitness_sweep(fit, correct, num_positives=int(positive.sum()), num_queries=len(gt.stamps))
+    pr = verified_fitness_sweep(loops, fit, positions=gt.positions, world_T_lidar=world_T_lidar,
+                                has_revisit=gt.has_loop, radius=gt.radius)
     return VerifiedLoops(name=name, score=score, pr=pr, loops=loops, fitness=fit, correct=correct,
-                         pose_errors=tuple(loop_pose_errors(loops, world_T_lidar)))
+                         pose_errors=tuple(loop_pose_errors(loops, world_T_lidar)),
+                         pose_right=tuple(loop_pose_right(loops, world_T_lidar)))

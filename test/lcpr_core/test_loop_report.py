@@ -12,8 +12,11 @@ from lcpr_core.loop_report import (
     PoseGraphProof,
     PublishedLoop,
     covariance_lidar_to_body,
+    loop_pose_right,
     pose_graph_proof,
+    pose_right,
     score_loops,
+    verified_loop_right,
 )
 from lcpr_core.posegraph import DriftModel, lidar_to_body
 from trajectory_fixtures import pose, square_laps
@@ -75,6 +78,52 @@ def test_a_loop_beyond_the_radius_with_the_true_relative_pose_is_counted_as_a_va
     score = score_loops([true_far, wrong_far], positions=positions, world_T_lidar=world_T_lidar,
                         has_revisit=has_revisit, radius=5.0)
     assert (score.correct, score.wrong_with_true_pose) == (0, 1)
+
+
+def test_verified_loops_fall_in_three_groups_by_pose_and_their_precision_counts_the_right_poses() -> None:
+    positions, world_T_lidar, has_revisit = hand_drive()
+    loops = [
+        PublishedLoop(3, 0, rel(world_T_lidar[0], world_T_lidar[3])),  # 1 m apart, right pose
+        PublishedLoop(5, 2, rel(world_T_lidar[2], world_T_lidar[5])),  # 30 m apart, right pose: a valid constraint
+        PublishedLoop(6, 2, off_by(rel(world_T_lidar[2], world_T_lidar[6]), (1.0, 0.0, 0.0), 0.0)),  # 1 m, pose off
+        PublishedLoop(4, 1),  # 1 m apart, no pose: in no group, and not right
+    ]
+    score = score_loops(loops, positions=positions, world_T_lidar=world_T_lidar, has_revisit=has_revisit, radius=5.0)
+    assert (score.right_within_radius, score.right_beyond_radius, score.wrong_pose, score.unjudged) == (1, 1, 1, 1)
+    assert score.precision_by_pose == pytest.approx(0.5) and score.headline_precision == pytest.approx(0.5)
+    assert score.correct == 3 and score.precision == pytest.approx(0.75)  # the radius rule, kept beside it
+    assert score.wrong_with_true_pose == 1
+    data = score.to_dict()
+    assert (data["right_within_radius"], data["right_beyond_radius"], data["wrong_pose"]) == (1, 1, 1)
+    assert score.groups_text(5.0) == ("1 right pose within 5 m, 1 right pose beyond 5 m (a valid constraint), "
+                                      "1 wrong pose, 1 without a pose to judge")
+    right = verified_loop_right(loops, positions=positions, world_T_lidar=world_T_lidar, radius=5.0)
+    assert right.tolist() == [True, True, False, False]
+
+
+def test_loops_without_a_pose_to_judge_are_judged_by_the_radius_rule_alone() -> None:
+    positions, world_T_lidar, has_revisit = hand_drive()
+    loops = [PublishedLoop(3, 0), PublishedLoop(5, 2)]  # retrieval alone: no pose
+    score = score_loops(loops, positions=positions, world_T_lidar=world_T_lidar, has_revisit=has_revisit, radius=5.0)
+    assert score.precision_by_pose is None and not score.judged_by_pose and score.unjudged == 2
+    assert score.headline_precision == pytest.approx(0.5) and score.groups_text(5.0) == "1 within 5 m, 1 beyond"
+    posed = [PublishedLoop(3, 0, rel(world_T_lidar[0], world_T_lidar[3])), PublishedLoop(5, 2, np.eye(4))]
+    no_truth = score_loops(posed, positions=positions, world_T_lidar=None, has_revisit=has_revisit, radius=5.0)
+    assert no_truth.precision_by_pose is None and no_truth.headline_precision == pytest.approx(0.5)
+    assert verified_loop_right(posed, positions=positions, world_T_lidar=None, radius=5.0).tolist() == [True, False]
+
+
+def test_a_pose_is_right_within_the_tolerance_of_translation_and_of_the_whole_rotation_angle() -> None:
+    truth = pose(2.0, 1.0, 0.0, yaw=30.0)
+    assert pose_right(off_by(truth, (0.29, 0.0, 0.0), 1.9), truth)
+    assert not pose_right(off_by(truth, (0.31, 0.0, 0.0), 0.0), truth)
+    assert not pose_right(off_by(truth, (0.0, 0.0, 0.0), 2.1), truth)
+    tilted = truth @ pose(pitch=3.0)  # the yaw is right, the sensor tilted: a pose graph would be bent by it
+    assert not pose_right(tilted, truth)
+    positions, world_T_lidar, _ = hand_drive()
+    world_T_lidar[0] = np.nan  # keyframe 0's true pose is unknown: 3 -> 0 cannot be judged
+    assert loop_pose_right([PublishedLoop(3, 0, np.eye(4)), PublishedLoop(5, 2, np.eye(4))], world_T_lidar) == [
+        None, False]
 
 
 def test_score_loops_without_loops_or_revisits_and_with_unknown_positions() -> None:

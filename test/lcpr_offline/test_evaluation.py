@@ -198,6 +198,20 @@ def test_the_report_is_written_as_plain_json_atomically(tmp_path: Path) -> None:
     assert data["ground_truth"]["queries_with_true_loop"] == 10 and data["counts"]["frames"] == 80
 
 
+def test_the_report_reader_reads_back_the_online_figures_the_report_writer_wrote(tmp_path: Path) -> None:
+    from lcpr_core.evaluation.eval_report import online, online_methods
+
+    report = line_report()
+    report.write_json(tmp_path / "report.json")
+    methods = online_methods(tmp_path / "report.json")
+    assert list(methods) == ["LCPR", "Other"]
+    lcpr = report.methods[0].online
+    assert lcpr.pr is not None
+    assert methods["LCPR"]["recall@1"] == pytest.approx(0.5) and methods["LCPR"]["max_f1"] == pytest.approx(0.625)
+    assert methods["LCPR"]["max_f1_threshold"] == pytest.approx(lcpr.pr.max_f1_threshold)
+    assert online(tmp_path / "report.json") == (pytest.approx(0.5), pytest.approx(0.625))
+
+
 def test_the_summary_table_lists_both_protocols_for_each_method() -> None:
     text = summary_table(line_report())
     assert "Recall@1/@5/@10" in text and "LCPR" in text and "Other" in text
@@ -382,6 +396,38 @@ def test_verified_loops_are_scored_by_the_loop_report_rule_and_reported_beside_r
     text = summary_table(report)
     assert "LCPR (retrieval)" in text and "LCPR + verification" in text
     assert "0.80 / 0.40" in text and "0.50 / 0.20" in text and "0.200 / 0.00" in text  # retrieval | verified
+
+
+def test_the_verified_table_and_the_report_judge_verified_loops_by_their_pose_in_three_groups() -> None:
+    from lcpr_core.evaluation import evaluate_verified
+    from lcpr_core.loop_report import PublishedLoop
+
+    report = line_report()
+    gt = report.ground_truth
+    world_T_lidar = np.tile(np.eye(4), (70, 1, 1))
+    world_T_lidar[:, :3, 3] = gt.positions
+    off = np.eye(4)
+    off[:3, 3] = (1.0, 0.0, 0.0)
+    loops = [PublishedLoop(60, 0, np.eye(4)),  # right pose within 9 m (0 m apart)
+             PublishedLoop(61, 21, np.linalg.inv(world_T_lidar[21]) @ world_T_lidar[61]),  # right pose 20 m apart
+             PublishedLoop(62, 32, off)]  # 30 m apart, 30 m off: wrong pose
+    verified = evaluate_verified(gt, loops, [0.9, 0.8, 0.7], world_T_lidar=world_T_lidar)
+    s = verified.score
+    assert (s.right_within_radius, s.right_beyond_radius, s.wrong_pose, s.unjudged) == (1, 1, 1, 0)
+    assert s.precision_by_pose == pytest.approx(2 / 3) and s.precision == pytest.approx(1 / 3)  # by pose, by radius
+    # the fitness sweep counts a loop right by its pose too: .9 right, .8 right (20 m apart), .7 wrong pose
+    assert verified.recall_at_full_precision == pytest.approx(0.2)
+    report.verified = verified
+    data = json.loads(json.dumps(report.to_dict(), allow_nan=False))["verified"]
+    assert (data["right_within_radius"], data["right_beyond_radius"], data["wrong_pose"]) == (1, 1, 1)
+    assert data["precision_by_pose"] == pytest.approx(2 / 3) and data["wrong_with_true_pose"] == 1
+    assert [(a["correct"], a["right_pose"]) for a in data["accepted_loops"]] == [(True, True), (False, True),
+                                                                                 (False, False)]
+    lines = {line[:34].strip(): line[34:].split() for line in summary_table(report).splitlines()}
+    assert lines["online     loops (right/wrong)"][-2:] == ["3", "(2/1)"]
+    assert lines["right pose <= / > 9 m"][-3:] == ["1", "/", "1"]
+    assert lines["online     precision / recall"][-3:] == ["0.67", "/", "0.10"]
+    assert " ".join(lines["right means"]) == "within 9 m pose 0.3 m / 2 deg"
 
 
 def test_the_lidar_extrinsic_comes_from_tf_static_or_is_identity(tmp_path: Path) -> None:

@@ -1,7 +1,7 @@
-"""Online figures read back from an ``lcpr_eval`` report (``OUT/report.json``).
+"""Online figures read back from an ``lcpr_eval`` report (``OUT/report.json``, written by :mod:`.report`).
 
 The recipes and tools that run ``lcpr_eval`` in a subprocess compare its results through these,
-so they all read the same fields the same way.
+so they all read the same fields the same way. Plain JSON: it imports nothing of the evaluation.
 """
 from __future__ import annotations
 
