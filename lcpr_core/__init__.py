@@ -12,10 +12,11 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from .errors import CheckpointError, InputShapeError, LcprError, MapError, MapSchemaError, VerificationError
-    from .lcpr.checkpoint import init_from_imagenet, load_weights, read_state_dict, save_checkpoint
+    from .lcpr.checkpoint import init_from_imagenet, load_weights, save_checkpoint
     from .lcpr.describer import Describer, ModelConfig, build_model
     from .lcpr.models import LCPR, LcprOutput
     from .lcpr.preprocess import PRESETS, LidarPreset, camera_tensor, cameras_tensor, range_image
+    from .torch_files import read_state_dict
     from .verification import GeometricVerifier, Verification, VerifierConfig
     from .vseq2pc.models import DescriptorModel, SequenceModel
     from .vseq2pc.preprocess import lidar_slices, structure_feature
@@ -23,7 +24,8 @@ if TYPE_CHECKING:
 _HOMES: dict[str, tuple[str, ...]] = {  # submodule: the names it gives the package
     ".errors": ("CheckpointError", "InputShapeError", "LcprError", "MapError", "MapSchemaError",
                 "VerificationError"),
-    ".lcpr.checkpoint": ("init_from_imagenet", "load_weights", "read_state_dict", "save_checkpoint"),
+    ".lcpr.checkpoint": ("init_from_imagenet", "load_weights", "save_checkpoint"),
+    ".torch_files": ("read_state_dict",),
     ".lcpr.describer": ("Describer", "ModelConfig", "build_model"),
     ".lcpr.models": ("LCPR", "LcprOutput"),
     ".lcpr.preprocess": ("PRESETS", "LidarPreset", "camera_tensor", "cameras_tensor", "range_image"),

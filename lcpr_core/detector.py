@@ -1,18 +1,23 @@
-"""The stable import path of LCPR's detector (``../shared/spec/interfaces.md``)::
+"""LCPR's detector, by the import path every module and user takes (``../shared/spec/interfaces.md``)::
 
     from lcpr_core.detector import LoopDetector, DetectorConfig, Frame
 
-The code lives in :mod:`lcpr_core.lcpr.detector` (LCPR's folder); this module only re-exports it.
+The code lives in LCPR's folder (:mod:`lcpr_core.lcpr.detector`); this module is its one public door, and
+an import contract (setup.cfg) keeps every other module from importing the folder's file directly.
 """
 from .lcpr.detector import (
+    MATCH_METHODS,
     REASONS,
     Candidate,
+    DescribedBatch,
     DetectorConfig,
     Frame,
+    KeyframeConfig,
     LoopDetector,
     MatchConfig,
     Result,
     SensorConfig,
 )
 
-__all__ = ["REASONS", "Candidate", "DetectorConfig", "Frame", "LoopDetector", "MatchConfig", "Result", "SensorConfig"]
+__all__ = ["MATCH_METHODS", "REASONS", "Candidate", "DescribedBatch", "DetectorConfig", "Frame", "KeyframeConfig",
+           "LoopDetector", "MatchConfig", "Result", "SensorConfig"]

@@ -104,7 +104,7 @@ def operating_threshold(weights: str) -> float | None:
     file without one, such as the authors' released checkpoints)."""
     if not weights:
         return None
-    from .lcpr.checkpoint import load_checkpoint  # torch: only when a file is read
+    from .torch_files import load_checkpoint  # torch: only when a file is read
 
     try:
         entry = load_checkpoint(weights, mmap=True)

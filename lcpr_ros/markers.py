@@ -13,7 +13,7 @@ from rclpy.publisher import Publisher
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
-from lcpr_core.lcpr.detector import Result
+from lcpr_core.detector import Result
 from ros_common.stamps import NS_PER_S
 
 NAMESPACE = "lcpr_loops"

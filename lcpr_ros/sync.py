@@ -19,8 +19,8 @@ arrives after it). A cloud whose cameras or pose are not all decided waits at mo
 An image that arrives after its frame went without it is counted per camera (``late``):
 the mark of samples lost in transport and repaired seconds later (a process that
 publishes images and clouds through Fast DDS's default 512 KiB shared-memory segment).
-Waiting longer for such repairs was measured to help nothing
-(benchmarks/tools/single_process_publisher.py): frames then arrive in bursts and the worker drops them.
+Waiting longer for such repairs does not help (docs/limitations.md;
+benchmarks/tools/single_process_publisher.py): frames then arrive in bursts and the worker drops them.
 At most ``max_pending`` clouds wait; the oldest is dropped beyond that. Duplicate and
 out-of-order stamps are refused per stream.
 """

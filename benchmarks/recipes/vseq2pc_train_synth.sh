@@ -38,13 +38,13 @@ LANES=${LANES:-2} bash benchmarks/recipes/vseq2pc_drives.sh "$OUT" ${DRIVE_OPTS:
 #    norm with the statistics eval mode uses, the ranking term, stage 1's reconstruction kept; README
 #    "VSeq2PC" and benchmarks/studies/vseq2pc_loss_study.sh say why); the epoch with the best Recall@1 on the
 #    validation drive is kept as best_*
-$PY -m lcpr_core.vseq2pc.training.cli --cache "$OUT"/train_seed{5,11,13,17,19,29}.npz --val-cache "$OUT/val_seed23.npz" \
+$PY -m lcpr_offline.vseq2pc_train --cache "$OUT"/train_seed{5,11,13,17,19,29}.npz --val-cache "$OUT/val_seed23.npz" \
     --out "$OUT/run" --pretrain-epochs 1 --epochs "${EPOCHS:-16}" --batch 32 --queries-per-epoch 3520 --seq-base-lr 8e-3 \
     --seq-warmup-epochs 0.5 --negatives 1 --mixed-batch-norm --ranking-weight 1 --reconstruction-weight 10 \
     --select recall_at_1 --no-progress
 
 # 3. the paper's evaluation on the held-out drive
-$PY -m lcpr_core.vseq2pc.evaluate --cache "$OUT/heldout_seed7.npz" --weights-dir "$OUT/run" --which best \
+$PY -m lcpr_offline.vseq2pc_evaluate --cache "$OUT/heldout_seed7.npz" --weights-dir "$OUT/run" --which best \
     --name "trained" --untrained --single-frame --sequence-lengths 2 3 --feature-match --out "$OUT/eval"
 
 if [ -n "$prefix" ]; then

@@ -28,11 +28,11 @@ study() {  # name, cache folder
   local name=$1 caches=$2 run="$OUT/depth_study_$1"
   [ "$EPOCHS" = 4 ] || run="${run}_e$EPOCHS"
   [ -f "$run/history.json" ] && grep -q "\"epoch\": $EPOCHS" "$run/history.json" || \
-    $PY -m lcpr_core.vseq2pc.training.cli --cache "$caches"/train_seed{5,11,13,17,19,29}.npz \
+    $PY -m lcpr_offline.vseq2pc_train --cache "$caches"/train_seed{5,11,13,17,19,29}.npz \
       --val-cache "$caches/val_seed23.npz" --out "$run" --pretrain-epochs 1 --epochs "$EPOCHS" --batch 32 \
       --queries-per-epoch 3520 --seq-base-lr 8e-3 --seq-warmup-epochs 0.5 --negatives 1 --mixed-batch-norm \
       --ranking-weight 1 --reconstruction-weight 10 --select recall_at_1 --no-progress
-  $PY -m lcpr_core.vseq2pc.evaluate --cache "$caches/val_seed23.npz" --weights-dir "$run" --which best \
+  $PY -m lcpr_offline.vseq2pc_evaluate --cache "$caches/val_seed23.npz" --weights-dir "$run" --which best \
     --name "$name" --single-frame --sequence-lengths 2 3 --feature-match --out "$run/eval_val"
 }
 for variant in "${VARIANTS[@]}"; do

@@ -19,7 +19,7 @@ run() {  # name, extra options
   [ -n "${SUMMARY_ONLY:-}" ] && return   # SUMMARY_ONLY=1: the table and figure of the runs already there
   [ -f "$OUT/study_$name/history.json" ] && grep -q '"epoch": 4' "$OUT/study_$name/history.json" && return
   echo "== $name: $*"
-  $PY -m lcpr_core.vseq2pc.training.cli "${COMMON[@]}" --out "$OUT/study_$name" "$@"
+  $PY -m lcpr_offline.vseq2pc_train "${COMMON[@]}" --out "$OUT/study_$name" "$@"
 }
 run release --negatives 1                                          # the release's loss (bundled weights' recipe)
 run mixed_bn --negatives 1 --mixed-batch-norm                      # batch norm as eval mode sees it

@@ -16,7 +16,8 @@ import torch
 from ..errors import CheckpointError, DeviceError, InvalidValueError
 from ..fingerprint import tensors_id
 from ..pretrained import WEIGHTS_NAMES, resolve_weights
-from .checkpoint import init_from_imagenet, load_checkpoint, load_weights
+from ..torch_files import load_checkpoint
+from .checkpoint import init_from_imagenet, load_weights
 from .config import (  # noqa: F401 - PRECISIONS, RUNTIMES: importable from here too, beside ModelConfig
     CHECKPOINT_FIELDS,
     PRECISIONS,
@@ -195,7 +196,8 @@ class Describer:
     @functools.cached_property
     def weights_id(self) -> str:
         """What makes these descriptors (network, whitening, turn averaging), recorded in the maps they fill;
-        hashed on first use (0.1 s at the released size on the AMD EPYC), as only a detector's map needs it."""
+        hashed on first use (hashing every tensor takes a while at the released size), as only a detector's map
+        needs it."""
         assert self.model is not None  # set in __post_init__
         tensors: dict[str, torch.Tensor | np.ndarray] = dict(self.model.state_dict())
         if self.whitening is not None:

@@ -26,7 +26,8 @@ import torch
 from torch import nn
 
 from ..errors import CheckpointError, InputShapeError, InvalidValueError
-from .checkpoint import copy_with, load_checkpoint
+from ..torch_files import load_checkpoint
+from .checkpoint import copy_with
 from .models import LCPR
 from .preprocess.turn import SLOT_YAWS_DEG, range_columns, slot_yaw_deg, turn_inputs
 from .whitening import unit_rows

@@ -28,7 +28,8 @@ import numpy as np
 import torch
 
 from ..errors import CheckpointError, InputShapeError, InvalidValueError
-from .checkpoint import copy_with, load_checkpoint
+from ..torch_files import load_checkpoint
+from .checkpoint import copy_with
 
 ENTRY = "whitening"  # the checkpoint key
 DEFAULT_POWER = 0.5

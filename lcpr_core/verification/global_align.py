@@ -12,9 +12,8 @@ still returns a pose.
 The defaults were chosen on validation pairs only (true revisits of ``livox_hku/walk_loop`` and
 ``campus`` whose query is in the first half, :func:`lcpr_offline.verification_pairs.split_pairs`
 "validation"), by benchmarks/studies/global_registration.py ``--tune``; docs/studies/global_registration.md
-has the measurement. Its cost (35-45 ms CPU a Livox pair on one core of the AMD EPYC measured, ~160 ms
-for 360 deg KITTI scans; the FPFH of both clouds is most of it) makes it a fallback for the best-ranked
-candidate whose usual starts failed, not a start for every candidate.
+has the measurements. Its cost (docs/studies/global_registration.md; the FPFH of both clouds is most of it)
+makes it a fallback for the best-ranked candidate whose usual starts failed, not a start for every candidate.
 """
 from __future__ import annotations
 
@@ -104,10 +103,9 @@ def _voxel_for(xyz: np.ndarray, cfg: GlobalAlignConfig) -> float:
     """``cfg.voxel``, or a coarser voxel that leaves about ``cfg.max_points`` of the cloud.
 
     Why: the features' cost grows with the points and their neighbours; a 360 deg scan keeps several
-    thousand points at the voxel that suits a 70 deg Livox view (KITTI-00: ~4700 at 0.8 m, ~300 ms a pair
-    on one core; capped at 2000, ~1.25 m and ~160 ms with the same starts found; at 1000, ~105 ms but 2 of
-    12 starts lost). The Livox clouds of the validation pairs keep 300-1100 points at 0.8 m: the cap
-    leaves them as they are. Surface points scale with 1 / voxel^2, so one rescaled voxel lands close.
+    thousand points at the voxel that suits a 70 deg Livox view, and a cap keeps its cost near a Livox pair's
+    with the same starts found (docs/studies/global_registration.md, "Parameters"); a narrow Livox cloud stays
+    as it is. Surface points scale with 1 / voxel^2, so one rescaled voxel lands close.
     Above ~1 m KISS-Matcher clamps its noise bounds and prints a warning to stdout.
     """
     import small_gicp

@@ -37,7 +37,7 @@ from .verifier import GeometricVerifier, LruCache, PreparedCache, PreparedCloud,
 RESPAWNS = 3  # workers replaced after one died, in the life of a pool; then the caller's process verifies
 _ONE_THREAD = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 SOURCE_CACHE = 4  # sources (query clouds) each worker keeps: a keyframe's submap and its scan alone, and the last ones
-_PREPARE_COST = 0.8  # preparing a cloud against registering one pair (verify_cost.py: ~20 against ~25 ms)
+_PREPARE_COST = 0.8  # preparing a cloud, in pair registrations (benchmarks/tools/verify_cost.py)
 
 
 @dataclass(frozen=True)

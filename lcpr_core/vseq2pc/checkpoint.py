@@ -39,7 +39,7 @@ from torch import nn
 
 from ..atomic import save_torch
 from ..errors import CheckpointError, UnsafePickleError
-from ..lcpr.checkpoint import check_state_dict, read_state_dict
+from ..torch_files import check_state_dict, read_state_dict
 from .models import DescriptorModel, SequenceModel
 
 __all__ = [

@@ -1,6 +1,6 @@
 """VSeq2PC loop detection: labelled LiDAR scans build the map, camera frames build query sequences.
 
-The node drives this class; it knows nothing of ROS (the same shape as :class:`lcpr_core.lcpr.detector.LoopDetector`)::
+The node drives this class; it knows nothing of ROS (the same shape as :class:`lcpr_core.detector.LoopDetector`)::
 
     detector = SequenceDetector(SequenceDetectorConfig(), net=Vseq2pcNet.from_files(...))
     if detector.scan_keyframe(stamp, pose) == KEYFRAME:           # cheap: where scans arrive

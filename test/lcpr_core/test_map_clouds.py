@@ -11,9 +11,9 @@ import pytest
 from test_verification import pose, pose_error, scene, view
 
 from lcpr_core.descriptor_map import SCHEMA_VERSION, DescriptorMap, MapConfig, Match
+from lcpr_core.detector import DetectorConfig, Frame, LoopDetector, MatchConfig
 from lcpr_core.errors import MapError, VerificationError
 from lcpr_core.lcpr.describer import Describer, Prepared, prepare_each
-from lcpr_core.lcpr.detector import DetectorConfig, Frame, LoopDetector, MatchConfig
 from lcpr_core.verification import REJECT_REASONS, CloudConfig, CloudStore, VerifierConfig, compact_cloud
 from lcpr_core.verification.processes import CloudRef
 

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
+from lcpr_core.detector import DetectorConfig, Frame, LoopDetector, MatchConfig
 from lcpr_core.lcpr.describer import Describer, Prepared, prepare_each
-from lcpr_core.lcpr.detector import DetectorConfig, Frame, LoopDetector, MatchConfig
 
 
 class AnyPlace:

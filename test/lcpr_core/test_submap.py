@@ -14,9 +14,9 @@ from test_map_clouds import KeyedDescriber
 from test_verification import pose, pose_error, scene, view
 
 from lcpr_core.descriptor_map import SCHEMA_VERSION, DescriptorMap, MapConfig
+from lcpr_core.detector import DetectorConfig, Frame, LoopDetector, MatchConfig
 from lcpr_core.errors import MapError, VerificationError
 from lcpr_core.lcpr.describer import Describer
-from lcpr_core.lcpr.detector import DetectorConfig, Frame, LoopDetector, MatchConfig
 from lcpr_core.verification import SubmapConfig, VerifierConfig, build_submap
 from lcpr_core.verification.submap import azimuth_coverage_deg, neighbour_rows, stitch
 
@@ -216,7 +216,7 @@ def test_a_pose_that_is_not_rigid_is_refused_by_the_map_and_kept_as_a_position_b
     sheared[0, 1] = 0.5
     with pytest.raises(MapError, match=r"poses \[0\] are not rigid"):
         m.add(np.ones(DIM, np.float32), stamps=0.0, poses=sheared)
-    from lcpr_core.lcpr.detector import _map_pose
+    from lcpr_core.lcpr.detector import _map_pose  # a private helper, tested where it lives
     kept = _map_pose(sheared)
     assert kept is not None and kept.shape == (1, 3)
 

@@ -28,7 +28,7 @@ def test_the_dense_drive_holds_every_keyframe_of_the_drive_at_the_same_stamp_and
 
 
 def test_kiss_icp_follows_the_dense_drive_and_the_node_s_loops_attach_to_its_keyframes(drive: SyntheticDrive) -> None:
-    from lcpr_core.backend_replay import trajectory_error
+    from lcpr_core.backend.replay import trajectory_error
     from lcpr_offline.drive_odometry import dense_drive, record_drive
 
     dense = dense_drive(drive, spacing=1.0)

@@ -42,9 +42,9 @@ log = logging.getLogger(__name__)
 
 DECODERS = ("auto", "pil", "turbo", "nvjpeg")
 #: CPU resizes with at most this many output values run in one batch on one thread: a parallel region costs
-#: more than it saves on such small tensors, and on a loaded machine it waits for a descheduled thread (the
-#: bundled 6 x 3 x 64 x 192 input: median 48 ms with 2 threads against 1.1 ms with one, AMD EPYC, load 7);
-#: larger inputs are resized image by image in the pool threads that decoded them
+#: more than it saves on such small tensors, and on a loaded machine it waits for a descheduled thread
+#: (docs/keyframe_pipeline.md, "Preprocessing"); larger inputs are resized image by image in the pool
+#: threads that decoded them
 SMALL_RESIZE = 1 << 20
 #: what :meth:`CameraPreprocessor.start` returns: call it for (N x 3 x H x W, {slot: why it was left out},
 #: what ``beside`` returned or None)

@@ -3,8 +3,8 @@
 A 1600 x 900 JPEG shrunk to 704 x 256 (or 192 x 64) does not need all its pixels: libjpeg-turbo
 can scale by 1/2, 1/4 or 1/8 while decoding (inside the inverse DCT), which skips most of the
 work. :func:`decode_scaled` keeps the largest of those reductions that still leaves at least the
-target size and decodes through ``simplejpeg`` (libjpeg-turbo's TurboJPEG API; six nuScenes JPEGs at
-1/2 take 24.5 ms against OpenCV's 35 ms on one AMD EPYC core), or through OpenCV's reduced-size
+target size and decodes through ``simplejpeg`` (libjpeg-turbo's TurboJPEG API, faster than OpenCV's
+decode: docs/keyframe_pipeline.md), or through OpenCV's reduced-size
 decode where ``simplejpeg`` is not installed; the antialiased resize that follows (:mod:`.cameras`)
 makes the rest of the way. Both release the GIL, so two threads decode two images at once. The
 descriptor stays within cosine 0.9999 of the released PIL pipeline on the real nuScenes keyframes

@@ -12,6 +12,7 @@ import torch
 
 from ...errors import RuntimeSetupError
 from .heap import fix_mmap_threshold
+from .numerics import CUDA_PRECISIONS, numerics
 
 if TYPE_CHECKING:
     from ..models import LCPR
@@ -35,8 +36,6 @@ class TorchBackend:
     """The torch model in fp32, tf32 (CUDA only) or under bf16 autocast; fp32 on a GPU has TF32 off (exact)."""
 
     def __init__(self, model: LCPR | TurnedNetwork, *, device: str = "cpu", precision: str = "fp32") -> None:
-        from .cuda import CUDA_PRECISIONS
-
         if precision not in CUDA_PRECISIONS:
             raise RuntimeSetupError(f"torch precision {precision!r}; accepted: {', '.join(CUDA_PRECISIONS)}")
         if precision == "tf32" and torch.device(device).type != "cuda":
@@ -46,8 +45,6 @@ class TorchBackend:
         self.name, self.runtime = precision, "torch"
 
     def __call__(self, images: torch.Tensor, ranges: torch.Tensor) -> np.ndarray:
-        from .cuda import numerics
-
         with numerics(self.device, self.name):
             desc = self.model(images.to(self.device, non_blocking=True), ranges.to(self.device, non_blocking=True))
         return desc.float().cpu().numpy()
@@ -85,8 +82,8 @@ class OpenVinoBackend:
 
     The inference precision is pinned to f32: on CPUs with bf16 support OpenVINO's default runs
     every unquantised layer in bf16, which is not the graph that was checked. The int8 QDQ pairs
-    still run as int8 convolutions (VNNI / AMX), which is why this is the faster int8 runtime on
-    the Xeons measured (docs/studies/inference_paths.md).
+    still run as int8 convolutions (VNNI / AMX), which makes this the faster int8 runtime on CPUs that
+    have them (docs/studies/inference_paths.md).
     """
 
     def __init__(self, path: str | os.PathLike[str], *, threads: int = 0, name: str = "int8") -> None:

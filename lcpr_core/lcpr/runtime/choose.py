@@ -3,8 +3,8 @@
 ``auto`` times torch fp32, torch bf16 autocast and ONNX Runtime fp32 on this CPU (a warm-up and
 a few forward passes each, on a fixed probe input) and keeps the fastest whose descriptor has a
 cosine of at least :data:`EXACT_COSINE` to torch fp32. The choice is logged with the CPU model,
-because it differs between machines: bf16 wins on CPUs with AMX or fast bf16 dot products
-(e.g. Zen 4) and loses on others. On a GPU, ``auto`` times fp32, tf32 and bf16, each replayed
+because it differs between machines: bf16 wins on CPUs with fast bf16 dot products and loses on
+others. On a GPU, ``auto`` times fp32, tf32 and bf16, each replayed
 from a CUDA graph of the describer's batch (:mod:`.cuda`), and keeps the fastest within
 :data:`~.cuda.GPU_COSINE` of exact fp32, logged with the GPU's name.
 An explicit ``onnx`` or ``int8`` is checked against torch fp32 on the probe before use.
@@ -17,11 +17,10 @@ also races :data:`SPLIT`: the turns shared out to as many single-threaded ONNX R
 run side by side, which avoids the intra-op synchronisation of small convolutions on few cores.
 
 ``config.runtime`` says what runs an exported graph: ``onnxruntime``, ``openvino``, or ``auto``.
-With ``auto``, the int8 graph is timed in both (when OpenVINO is installed) and the faster kept:
-OpenVINO's int8 convolutions were 1.8x faster than ONNX Runtime's on an Intel Xeon with AMX,
-so it matters. The exact fp32 graph runs in ONNX Runtime under ``auto``: the two measured within
-2 % of each other on both CPUs tried, not worth the start time of compiling twice; on the AMD EPYC
-(2 cores) OpenVINO ran the bundled six-turn graph 1.4x slower than ONNX Runtime (interleaved, same run).
+With ``auto``, the int8 graph is timed in both (when OpenVINO is installed) and the faster kept, as the
+winner differs between CPUs. The exact fp32 graph runs in ONNX Runtime under ``auto``: OpenVINO is not
+faster there, and not worth the start time of compiling twice (docs/studies/inference_paths.md,
+"Which runtime runs a graph").
 """
 from __future__ import annotations
 
@@ -38,7 +37,8 @@ import torch
 from ...errors import RuntimeSetupError
 from ...timing import cpu_model, median_seconds
 from .backends import Backend, OpenVinoBackend, OrtBackend, SplitBackend, TorchBackend
-from .cuda import CUDA_PRECISIONS, GPU_COSINE, GraphBackend, gpu_name
+from .cuda import GPU_COSINE, GraphBackend, gpu_name
+from .numerics import CUDA_PRECISIONS
 from .onnx_cache import exported_graph, graph_key, graph_turns, onnx_path
 
 if TYPE_CHECKING:

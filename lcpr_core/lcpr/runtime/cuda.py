@@ -1,31 +1,23 @@
-"""The network on a CUDA GPU: an exact fp32 path, two named fast paths, and CUDA-graph replay.
+"""The network on a CUDA GPU: CUDA-graph replay of the paths in :mod:`.numerics`.
 
-- ``fp32``: float32 with TF32 off for cuDNN convolutions and matrix products. PyTorch lets cuDNN
-  use TF32 by default, which moves the released network 7.7e-5 off the authors' reference
-  vectors (outside the 1e-5 parity); with TF32 off it is 5.4e-7 (measured on an H100).
-- ``tf32``: TF32 tensor cores for convolutions and matrix products.
-- ``bf16``: bfloat16 autocast.
-
-Each path sets the switches it needs around every call and restores them, so two describers in
-one process (or a user's own model) keep their own. :class:`GraphBackend` captures one forward
-pass of a fixed batch (the node's: one frame, or its six turns) in a CUDA graph and replays it:
-the launch overhead of the network's ~200 kernels is most of a pass at batch 1. :meth:`GraphBackend.reserve`
-captures another graph for a larger batch (offline evaluation describes many frames per call); a
-batch between captured sizes is padded into the next larger graph (rows are independent: the
-network is in eval mode). A larger batch runs eagerly; a capture that fails leaves the eager path,
-with a warning.
+:class:`GraphBackend` captures one forward pass of a fixed batch (the node's: one frame, or its six turns)
+in a CUDA graph and replays it: at batch 1 launching the network's ~200 kernels one by one costs more than
+their arithmetic. :meth:`GraphBackend.reserve` captures another graph for a larger batch (offline
+evaluation describes many frames per call); a batch between captured sizes is padded into the next larger
+graph (rows are independent: the network is in eval mode). A larger batch runs eagerly; a capture that
+fails leaves the eager path, with a warning.
 """
 from __future__ import annotations
 
-import contextlib
 import logging
-from collections.abc import Iterator
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from ...errors import RuntimeSetupError
+from .backends import TorchBackend
+from .numerics import CUDA_PRECISIONS, numerics
 
 if TYPE_CHECKING:
     from ..models import LCPR
@@ -33,43 +25,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-CUDA_PRECISIONS = ("fp32", "tf32", "bf16")
 #: auto on a GPU keeps the fastest path whose descriptors are at least this close to exact fp32
 GPU_COSINE = 0.9999
-
-
-@contextlib.contextmanager
-def float32_math(*, tf32: bool) -> Iterator[None]:
-    """cuDNN convolutions and CUDA matrix products in TF32 (``tf32``) or in full float32, then as before."""
-    conv: Any = getattr(torch.backends.cudnn, "conv", None)  # not in torch's type stubs
-    new_api = conv is not None and hasattr(conv, "fp32_precision")
-    if new_api:  # torch >= 2.9: the legacy allow_tf32 switches are deprecated
-        saved = (conv.fp32_precision, torch.backends.cuda.matmul.fp32_precision)
-        mode = "tf32" if tf32 else "ieee"
-        conv.fp32_precision = mode
-        torch.backends.cuda.matmul.fp32_precision = mode
-    else:
-        saved = (torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32)
-        torch.backends.cudnn.allow_tf32 = tf32
-        torch.backends.cuda.matmul.allow_tf32 = tf32
-    try:
-        yield
-    finally:
-        if new_api:
-            conv.fp32_precision, torch.backends.cuda.matmul.fp32_precision = saved
-        else:
-            torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = saved
-
-
-@contextlib.contextmanager
-def numerics(device: torch.device, precision: str) -> Iterator[None]:
-    """The arithmetic ``precision`` names, for a forward pass on ``device`` (see the module doc)."""
-    with contextlib.ExitStack() as stack:
-        stack.enter_context(torch.inference_mode())
-        if device.type == "cuda":
-            stack.enter_context(float32_math(tf32=precision == "tf32"))
-        stack.enter_context(torch.autocast(device.type, dtype=torch.bfloat16, enabled=precision == "bf16"))
-        yield
 
 
 def gpu_name(device: str | torch.device) -> str:
@@ -83,8 +40,6 @@ class GraphBackend:
 
     def __init__(self, model: LCPR | TurnedNetwork, *, device: str, precision: str, batch: int,
                  warmup: int = 3) -> None:
-        from .backends import TorchBackend
-
         if precision not in CUDA_PRECISIONS:
             raise RuntimeSetupError(f"precision={precision!r} cannot be captured; accepted: {CUDA_PRECISIONS}")
         self.eager = TorchBackend(model, device=device, precision=precision)

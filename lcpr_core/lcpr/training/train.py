@@ -31,7 +31,8 @@ from lcpr_common.progress import progress_bar
 
 from ...atomic import atomic_path, save_torch
 from ...errors import CheckpointError, InvalidValueError
-from ..checkpoint import LIDAR_ONLY, check_state_dict, init_from_imagenet, load_weights, read_released, save_checkpoint
+from ...torch_files import check_state_dict
+from ..checkpoint import LIDAR_ONLY, init_from_imagenet, load_weights, read_released, save_checkpoint
 from ..models import LCPR
 from ..turn_average import ENTRY as TURN_AVERAGE
 from ..whitening import ENTRY as WHITENING

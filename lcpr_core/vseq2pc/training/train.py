@@ -24,8 +24,8 @@ values unchanged); ``--no-straight-through-clamp`` trains with the plain clamp.
 Batch norm: the descriptor model's tower is shared by scan slices and by the camera stream
 of the sequence descriptor. Called apart (the release), training normalises each kind with
 its own batch statistics, while eval mode normalises both with one set of running
-statistics; the network learned under a normalisation it never meets at inference (the
-earlier bundled weights: validation Recall@1 0.11 in eval mode, 0.22 with batch statistics).
+statistics; the network learned under a normalisation it never meets at inference
+(docs/studies/vseq2pc_loss.md measures the difference).
 ``mixed_batch_norm`` passes both kinds through the tower together, so training sees what
 eval sees. ``ranking_weight`` adds a ranking term (each query's positives above its
 negatives, a softmax over the batch's max-slice logits), which is what Recall@1 asks for;

@@ -19,7 +19,7 @@ from lcpr_core.lcpr.preprocess.cameras import CameraPreprocessor, resolve_decode
 from lcpr_core.lcpr.preprocess.dataset_files import find_nuscenes_keyframe
 from lcpr_core.lcpr.preprocess.decode import jpeg_size, reduction
 from lcpr_core.lcpr.preprocess.range_image import NO_RETURN, range_image_tensor, range_images_tensor
-from lcpr_core.lcpr.runtime.cuda import float32_math
+from lcpr_core.lcpr.runtime.numerics import float32_math
 from lcpr_core.pretrained import default_weights
 
 SMALL: dict[str, Any] = dict(width=0.25, image_size=(64, 192), range_size=(16, 264), precision="fp32")

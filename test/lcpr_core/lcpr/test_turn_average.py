@@ -192,9 +192,9 @@ def test_lcpr_train_turn_average_switches_the_entry_and_refuses_other_words(tmp_
 
 def test_on_the_real_nuscenes_keyframe_the_bundled_averaged_descriptor_barely_moves_when_the_vehicle_turns(
         nuscenes_sample):
-    from lcpr_core.lcpr.keyframe_demo import cosine
     from lcpr_core.lcpr.preprocess.dataset_files import find_nuscenes_keyframe
     from lcpr_core.pretrained import default_weights
+    from lcpr_offline.lcpr_keyframe_demo import cosine
 
     images, points = find_nuscenes_keyframe(nuscenes_sample).read()
     moved = points.copy()

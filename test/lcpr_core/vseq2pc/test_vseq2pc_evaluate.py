@@ -10,9 +10,10 @@ import torch
 from torch import nn
 
 from lcpr_core.vseq2pc.dataset import FeatureCache
-from lcpr_core.vseq2pc.evaluate import EvalConfig, evaluate, evaluate_feature_match, main
+from lcpr_core.vseq2pc.evaluate import EvalConfig, evaluate, evaluate_feature_match
 from lcpr_core.vseq2pc.net import Vseq2pcNet
 from lcpr_core.vseq2pc.pairs import evaluation_pairs, place_label
+from lcpr_offline.vseq2pc_evaluate import main
 
 
 class FirstFrame(nn.Module):

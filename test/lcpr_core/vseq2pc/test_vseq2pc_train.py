@@ -12,7 +12,8 @@ from lcpr_core.vseq2pc import Vseq2pcNet
 from lcpr_core.vseq2pc.dataset import FeatureCache
 from lcpr_core.vseq2pc.initialisation import seeded_models
 from lcpr_core.vseq2pc.pairs import TrainPairConfig, training_pairs
-from lcpr_core.vseq2pc.training import TrainConfig, lr_at, main, place_loss, ranking_loss, split, train
+from lcpr_core.vseq2pc.training import TrainConfig, lr_at, place_loss, ranking_loss, split, train
+from lcpr_offline.vseq2pc_train import main
 
 
 def line_cache(n: int = 48, step: float = 1.5, seed: int = 0) -> FeatureCache:

@@ -8,11 +8,11 @@ import sys
 import time
 from collections.abc import Sequence
 
-from ..pairs import (
+from lcpr_core.vseq2pc.pairs import (
     TrainPairConfig,
 )
-from .config import SELECT_METRICS, TrainConfig
-from .train import train
+from lcpr_core.vseq2pc.training.config import SELECT_METRICS, TrainConfig
+from lcpr_core.vseq2pc.training.train import train
 
 log = logging.getLogger("lcpr_core.vseq2pc.training")
 

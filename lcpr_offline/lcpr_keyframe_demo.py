@@ -14,14 +14,13 @@ import numpy as np
 import torch
 
 from lcpr_common.shared_data import shared_path
-
-from ..points import rotate_z
-from ..pretrained import SEEDED, command_weights, describe_weights
-from ..timing import median_seconds
-from .describer import Describer, ModelConfig
-from .preprocess import NUSCENES_CAMERAS, range_image
-from .preprocess.dataset_files import find_nuscenes_keyframe
-from .preprocess.turn import turn_frame
+from lcpr_core.lcpr.describer import Describer, ModelConfig
+from lcpr_core.lcpr.preprocess import NUSCENES_CAMERAS, range_image
+from lcpr_core.lcpr.preprocess.dataset_files import find_nuscenes_keyframe
+from lcpr_core.lcpr.preprocess.turn import turn_frame
+from lcpr_core.points import rotate_z
+from lcpr_core.pretrained import SEEDED, command_weights, describe_weights
+from lcpr_core.timing import median_seconds
 
 log = logging.getLogger("lcpr_demo")
 
@@ -130,8 +129,8 @@ def plot_inputs(cams: torch.Tensor, ranges: torch.Tensor, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..atomic import save_figure
-    from .preprocess import IMAGENET_MEAN, IMAGENET_STD
+    from lcpr_core.atomic import save_figure
+    from lcpr_core.lcpr.preprocess import IMAGENET_MEAN, IMAGENET_STD
 
     mean, std = torch.tensor(IMAGENET_MEAN).view(3, 1, 1), torch.tensor(IMAGENET_STD).view(3, 1, 1)
     strip = torch.cat([(c * std + mean).clamp(0, 1) for c in cams], dim=2).permute(1, 2, 0).numpy()

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from lcpr_core import Describer, ModelConfig
-from lcpr_core.lcpr.keyframe_demo import cosine, main, yaw_and_degradation
 from lcpr_core.lcpr.preprocess.dataset_files import find_nuscenes_keyframe
+from lcpr_offline.lcpr_keyframe_demo import cosine, main, yaw_and_degradation
 
 
 @pytest.fixture(scope="module")
