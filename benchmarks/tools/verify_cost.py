@@ -2,7 +2,7 @@
 
     python benchmarks/tools/verify_cost.py [--queries 30] [--candidates 10] [--frames 160] [--max-points N]
                                            [--workers 2] [--processes 2] [--set num_threads=2 ...]
-                                           [--save VERDICTS.json] [--compare VERDICTS.json]
+                                           [--save VERDICTS.json] [--compare VERDICTS.json] [--profile]
 
 A synthetic nuScenes-rig drive (city seed 3, 32-beam LiDAR, compact clouds capped at ``--max-points``).
 For each revisiting keyframe, the ``--candidates`` earlier keyframes *nearest in position*
@@ -25,6 +25,11 @@ run's verdicts against such a file, candidate for candidate (e.g. before and aft
 verifier), prints what differs and exits with status 1 when a decision or a reason differs or a pose
 moved more than 1 mm / 0.01 deg.
 
+``--profile`` also prints where the time goes: per keyframe of the one-by-one pass, the wall and CPU time of
+each stage (:data:`STAGES`), measured by wrapping the methods of the verifier instance for that pass only
+(:class:`StageProfile`; the verifier's code is untouched and the verdicts are the same), and for the worker
+processes what the parent can see: the pass's wall time against the workers' own verification and CPU time.
+
 It also counts the accepted pairs whose pose is right (within 0.5 m / 3 deg of the drive's LiDAR poses) and
 lists those accepted with a wrong pose: a candidate nearest in position may lie 5-20 m away, and accepting it is
 no error only with its pose right.
@@ -35,6 +40,8 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +52,21 @@ from lcpr_common.cli import tool_main
 POSE_TOLERANCE_M = 1e-3  # --compare: a pose that moved more than this (or the angle below) is a difference
 POSE_TOLERANCE_DEG = 1e-2
 POSE_OK_M, POSE_OK_DEG = 0.5, 3.0  # an accepted pair's pose is right within these of the drive's poses
+# --profile: each stage and the GeometricVerifier methods whose time it is charged; "other" is the rest of the pass
+STAGE_METHODS: dict[str, tuple[str, ...]] = {
+    "prepare (query)": ("prepare",),
+    "starts (BEV / Scan Context yaw)": ("starts", "hypotheses"),
+    "coarse GICP": ("_coarse",),
+    "fine GICP": ("_fine",),
+    "evidence + overlap": ("_evidence", "_overlap"),
+    "ambiguity (its registrations included)": ("_alternative",),
+    "free space": ("contradiction",),
+    "judge + covariance": ("_judge", "_covariance"),
+}
+OTHER = "other"
+STAGES: tuple[str, ...] = (*STAGE_METHODS, OTHER)
+# stages that keep the time of the stages they call: the ambiguity test's extra starts and registrations are its cost
+OWNS_NESTED = frozenset({"ambiguity (its registrations included)"})
 
 
 @tool_main
@@ -63,6 +85,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="override a numeric VerifierConfig field, e.g. overlap_points=0 (repeatable)")
     p.add_argument("--save", type=Path, default=None, help="write every verdict to this JSON file")
     p.add_argument("--compare", type=Path, default=None, help="compare the verdicts with a --save file")
+    p.add_argument("--profile", action="store_true",
+                   help="also print each stage's share of the wall and CPU time (one by one; worker processes)")
     args = p.parse_args(argv)
     if args.workers < 1:
         raise SystemExit(f"--workers {args.workers}; accepted: an integer >= 1")
@@ -110,6 +134,9 @@ def main(argv: list[str] | None = None) -> int:
     if processes is not None:
         timed[f"over {count} processes"] = ([], [])
     ref = lambda i: CloudRef(i, lambda: compact[i])  # noqa: E731 - a keyframe's cloud by its index
+    profile = StageProfile(verifier) if args.profile else None
+    stage_times: list[tuple[dict[str, float], dict[str, float]]] = []  # per keyframe: (wall, CPU) by stage
+    remote: list[tuple[float, float, float, float]] = []  # per keyframe: wall, workers' verification, their CPU, ours
     try:
         for _ in tqdm(range(args.repeats), desc="passes"):
             for q, candidates in cases:
@@ -120,9 +147,17 @@ def main(argv: list[str] | None = None) -> int:
                         cpu += processes.worker_cpu_seconds
                     if name.endswith("processes"):
                         assert processes is not None
+                        workers_cpu, own_cpu = processes.worker_cpu_seconds, time.process_time()
                         answers = processes.verify([(ref(q), ref(m)) for m in candidates])
                         found[name] = [v for v in answers if isinstance(v, Verification)]
                         assert len(found[name]) == len(candidates), answers
+                        remote.append((time.perf_counter() - tic, sum(v.seconds for v in found[name]),
+                                       processes.worker_cpu_seconds - workers_cpu, time.process_time() - own_cpu))
+                    elif name == "one by one" and profile is not None:
+                        with profile.measuring():
+                            query = verifier.prepare(compact[q])
+                            found[name] = verifier.verify_all(query, [prepared[m] for m in candidates])
+                        stage_times.append(profile.take())
                     else:
                         query = verifier.prepare(compact[q])
                         found[name] = verifier.verify_all(query, [prepared[m] for m in candidates],
@@ -153,6 +188,11 @@ def main(argv: list[str] | None = None) -> int:
     for name, (wall, cpu_time) in timed.items():
         print(f"  verification per keyframe, candidate clouds cached, {name}: {ms(wall)} (CPU time {ms(cpu_time)})")
     print(f"  verification per keyframe, nothing cached, one by one: {ms(uncached)}")
+    if profile is not None:
+        print(_stage_table(stage_times[skip:], cpu_model(), verifier.config.num_threads,
+                           [stage for stage, n in profile.calls.items() if n == 0]))
+        if remote:
+            print(_remote_summary(remote[skip:], count))
     right, wrong = _pose_check(verdicts, seq.poses)
     print(f"  accepted with the right pose (within {POSE_OK_M} m / {POSE_OK_DEG} deg of the drive's): {right}; "
           f"with a wrong pose: {len(wrong)}")
@@ -173,6 +213,105 @@ def main(argv: list[str] | None = None) -> int:
     for line in mismatches[:20]:
         print("    " + line)
     return 1 if mismatches else 0
+
+
+class StageProfile:
+    """Exclusive wall and CPU time per stage (:data:`STAGES`) of one :class:`GeometricVerifier` instance's work.
+
+    While :meth:`measuring`, the instance's methods named in :data:`STAGE_METHODS` are replaced by wrappers on
+    the instance (the class and other instances are untouched; verdicts are the same). A stack of the active
+    stages charges each interval to the innermost one (the overlap inside a coarse registration counts as
+    evidence + overlap, not twice), except inside a stage of :data:`OWNS_NESTED`, which keeps what it calls;
+    time outside every stage is "other". CPU time is this process's (``time.process_time``: the verifier's
+    registration threads included; nothing else runs in it during the one-by-one pass).
+    """
+
+    def __init__(self, verifier: Any) -> None:
+        self.verifier = verifier
+        self.wall, self.cpu = dict.fromkeys(STAGES, 0.0), dict.fromkeys(STAGES, 0.0)
+        self.calls = dict.fromkeys(STAGE_METHODS, 0)  # times each stage was entered, over all the keyframes
+        self._stack: list[str] = []
+        self._mark = (0.0, 0.0)
+
+    @contextmanager
+    def measuring(self) -> Iterator[None]:
+        """Times the verifier's stages while the block runs (the block's time outside them counts as other)."""
+        names = [(stage, name) for stage, methods in STAGE_METHODS.items() for name in methods]
+        for stage, name in names:
+            setattr(self.verifier, name, self._timed(stage, getattr(self.verifier, name)))
+        self._stack.clear()
+        self._mark = (time.perf_counter(), time.process_time())
+        try:
+            yield
+        finally:
+            self._charge()
+            for _, name in names:
+                delattr(self.verifier, name)  # the class's method again
+
+    def take(self) -> tuple[dict[str, float], dict[str, float]]:
+        """(wall, CPU) seconds by stage since the last take, and start again from zero."""
+        out = (self.wall, self.cpu)
+        self.wall, self.cpu = dict.fromkeys(STAGES, 0.0), dict.fromkeys(STAGES, 0.0)
+        return out
+
+    def _charge(self) -> None:
+        """Charge the time since the last mark to the innermost active stage."""
+        wall, cpu = time.perf_counter(), time.process_time()
+        stage = self._stack[-1] if self._stack else OTHER
+        self.wall[stage] += wall - self._mark[0]
+        self.cpu[stage] += cpu - self._mark[1]
+        self._mark = (wall, cpu)
+
+    def _timed(self, stage: str, method: Callable[..., Any]) -> Callable[..., Any]:
+        def timed(*args: Any, **kwargs: Any) -> Any:
+            if self._stack and self._stack[-1] in OWNS_NESTED:
+                return method(*args, **kwargs)
+            self.calls[stage] += 1
+            self._charge()
+            self._stack.append(stage)
+            try:
+                return method(*args, **kwargs)
+            finally:
+                self._charge()
+                self._stack.pop()
+        return timed
+
+
+def _stage_table(times: list[tuple[dict[str, float], dict[str, float]]], cpu: str, threads: int,
+                 unreached: list[str]) -> str:
+    """--profile's table: per stage the median ms per keyframe and the share of the total over the keyframes,
+    wall and CPU, as Markdown (the shares sum to 100 %; the medians need not sum to the total's median), and the
+    stages never entered (``unreached``: a zero there is no measurement)."""
+    walls = np.array([[w[s] for s in STAGES] for w, _ in times]) * 1e3  # keyframes x stages, ms
+    cpus = np.array([[c[s] for s in STAGES] for _, c in times]) * 1e3
+    lines = [f"where the time goes, one by one in one process ({cpu}, verifier threads {threads}; {len(times)} "
+             "keyframes timed over the passes after the first; ms per keyframe: median; share: of their sum):",
+             "| stage | wall ms | share of wall | CPU ms | share of CPU |", "|---|---|---|---|---|"]
+    wall_share = 100.0 * walls.sum(axis=0) / max(walls.sum(), 1e-12)
+    cpu_share = 100.0 * cpus.sum(axis=0) / max(cpus.sum(), 1e-12)
+    for k, stage in enumerate(STAGES):
+        lines.append(f"| {stage} | {np.median(walls[:, k]):.1f} | {wall_share[k]:.1f} % | "
+                     f"{np.median(cpus[:, k]):.1f} | {cpu_share[k]:.1f} % |")
+    lines.append(f"| total | {np.median(walls.sum(axis=1)):.1f} | 100 % | {np.median(cpus.sum(axis=1)):.1f} | 100 % |")
+    if unreached:
+        lines.append(f"never entered on this drive: {', '.join(unreached)}")
+    lines.append("submap stitching: not exercised (360 deg clouds: submap mode auto verifies single scans); "
+                 "caching: the candidates' clouds are prepared beforehand, as the node caches them")
+    return "\n".join(lines)
+
+
+def _remote_summary(remote: list[tuple[float, float, float, float]], processes: int) -> str:
+    """--profile's line on the worker processes, from the parent: per keyframe (median ms) the pass's wall time,
+    the workers' verification (the verdicts' own seconds, summed), their CPU time for the requests (verification and
+    preparing the clouds they lack) and this process's CPU time (requests, pickling); the wall time not covered by
+    the workers' CPU time shared evenly is moving data to and from them, pickling and waiting for the slower one."""
+    wall, verify, worker_cpu, own_cpu = (1e3 * np.array(column) for column in zip(*remote, strict=True))
+    rest = wall - worker_cpu / processes
+    return (f"over {processes} worker processes (seen from the parent; ms per keyframe, median): wall "
+            f"{np.median(wall):.1f}; in the workers, verification {np.median(verify):.1f} (the verdicts' seconds, "
+            f"all workers) and CPU {np.median(worker_cpu):.1f} (verification and preparing the clouds they lack); "
+            f"this process's CPU {np.median(own_cpu):.1f}; wall - workers' CPU / {processes}: {np.median(rest):.1f} "
+            "(moving data to and from the workers, pickling, waiting for the slower one)")
 
 
 def _pose_check(verdicts: dict[tuple[int, int], Any], poses: np.ndarray) -> tuple[int, list[str]]:

@@ -2,9 +2,9 @@
 
 Every script there is started in a subprocess with this interpreter (the venv, the installed package)
 and ``--help``, from another working directory: it must exit 0 with a usage line, so a script that no
-longer starts or parses its options shows up in CI although no tool runs for real here. The tools read
-their arguments before importing torch or the package (a fraction of a second each); the imports that
-follow are mypy's to check (setup.cfg lists benchmarks).
+longer starts or parses its options shows up in CI although most tools do not run for real here (verify_cost's
+profile does, on its smallest drive). The tools read their arguments before importing torch or the package (a
+fraction of a second each); the imports that follow are mypy's to check (setup.cfg lists benchmarks).
 """
 from __future__ import annotations
 
@@ -61,3 +61,22 @@ def test_every_maintained_tool_ends_on_bad_input_through_the_shared_helper() -> 
     """One way for all: each tool's main is wrapped by lcpr_common.cli.tool_main."""
     unwrapped = [tool.name for tool in sorted(TOOLS.glob("*.py")) if "@tool_main\ndef main(" not in tool.read_text()]
     assert unwrapped == []
+
+
+def test_verify_cost_profile_names_every_stage_and_its_shares_add_up(capsys: pytest.CaptureFixture[str]) -> None:
+    """--profile on the smallest drive with a revisit: a row per stage, wall and CPU shares summing to 100 %,
+    the registrations charged, and the worker processes' line; the verdicts still match (exit status 0)."""
+    tool = _tool_module("verify_cost")
+    status = tool.main(["--frames", "110", "--queries", "1", "--candidates", "2", "--repeats", "2",
+                        "--processes", "1", "--profile"])
+    out = capsys.readouterr().out
+    assert status == 0, out
+    rows = {cells[0]: cells[1:] for line in out.splitlines() if line.startswith("| ") and "---" not in line
+            for cells in [[c.strip() for c in line.strip("|").split("|")]]}
+    assert list(rows) == ["stage", *tool.STAGES, "total"], out
+    stages = [rows[s] for s in tool.STAGES]
+    for column in (1, 3):  # share of wall, share of CPU
+        assert sum(float(r[column].rstrip(" %")) for r in stages) == pytest.approx(100.0, abs=0.5), out
+    assert all(float(r[0]) >= 0.0 and float(r[2]) >= 0.0 for r in stages), out
+    assert float(rows["coarse GICP"][0]) > 0.0 and float(rows["prepare (query)"][0]) > 0.0, out
+    assert "over 1 worker processes (seen from the parent" in out and "submap stitching: not exercised" in out, out
