@@ -41,7 +41,7 @@ import json
 import sys
 import time
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 from typing import Any
 
@@ -153,15 +153,14 @@ def main(argv: list[str] | None = None) -> int:
                         assert len(found[name]) == len(candidates), answers
                         remote.append((time.perf_counter() - tic, sum(v.seconds for v in found[name]),
                                        processes.worker_cpu_seconds - workers_cpu, time.process_time() - own_cpu))
-                    elif name == "one by one" and profile is not None:
-                        with profile.measuring():
-                            query = verifier.prepare(compact[q])
-                            found[name] = verifier.verify_all(query, [prepared[m] for m in candidates])
-                        stage_times.append(profile.take())
                     else:
-                        query = verifier.prepare(compact[q])
-                        found[name] = verifier.verify_all(query, [prepared[m] for m in candidates],
-                                                          pool=None if name == "one by one" else pool)
+                        profiled = profile if name == "one by one" else None  # --profile times that pass
+                        with profiled.measuring() if profiled is not None else nullcontext():
+                            query = verifier.prepare(compact[q])
+                            found[name] = verifier.verify_all(query, [prepared[m] for m in candidates],
+                                                              pool=None if name == "one by one" else pool)
+                        if profiled is not None:
+                            stage_times.append(profiled.take())
                     wall.append(time.perf_counter() - tic)
                     cpu_time.append(time.process_time() - cpu + (processes.worker_cpu_seconds if processes else 0.0))
                 accepted.append(sum(v.accepted for v in found["one by one"]))

@@ -105,5 +105,4 @@ def test_the_ros_descriptor_is_derived_from_the_field_metadata() -> None:
 
 
 if __name__ == "__main__":
-    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the packages of this checkout
     sys.stdout.write(record_text())
