@@ -25,6 +25,18 @@ class WriteReport:
     wall_s: float = 0.0
 
 
+def write_bag_once(drive: SyntheticDrive, out: str | os.PathLike[str], *, desc: str, workers: int = 2) -> bool:
+    """Write ``drive`` to ``out`` with a progress bar unless a bag is there already (a demo run again reuses
+    its drives); True when it was written."""
+    from lcpr_common.progress import progress_iter
+
+    if os.path.exists(out):
+        return False
+    write_bag(drive, out, workers=workers,
+              wrap=lambda frames: progress_iter(frames, total=len(drive), desc=desc, unit="frame"))
+    return True
+
+
 def write_bag(drive: SyntheticDrive, out: str | os.PathLike[str], *, workers: int = 1, storage: str = "sqlite3",
               overwrite: bool = False, wrap: Callable[[Iterator[SensorFrame]], Iterable[SensorFrame]] | None = None
               ) -> WriteReport:

@@ -11,7 +11,7 @@ from PIL import Image
 from msg_tools.frames import CameraModel
 
 from . import ground as g
-from .hashing import fractal_noise, hash_uniform, sample_noise
+from .hashing import drive_keys, fractal_noise, hash_uniform, sample_noise
 from .materials import ground_look, object_look
 from .raycast import BOTTOM, TOP, View, cast
 from .world import GroundMap, Objects
@@ -38,9 +38,9 @@ class Lighting:
     clouds: float
 
 
-def lighting(*, seed: int, session: int, night: bool) -> Lighting:
-    """Seeded lighting of one session (sun, haze, white balance vary per session)."""
-    u = [float(v) for v in hash_uniform(seed, 31, session, np.arange(8))]
+def lighting(*, seed: int, session: int, night: bool, drive: int = 0) -> Lighting:
+    """Seeded lighting of one session (sun, haze, white balance vary per session; each drive of a city has its own)."""
+    u = [float(v) for v in hash_uniform(seed, 31, session, np.arange(8), *drive_keys(drive))]
     if night:
         return Lighting(night=True, sun=(0.0, 0.0, 1.0), sun_strength=0.0, ambient=0.02 + 0.02 * u[0],
                         sky_top=(0.004, 0.006, 0.014), sky_horizon=(0.03 + 0.02 * u[1], 0.025, 0.028),

@@ -40,6 +40,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rig", choices=RIGS, default="nuscenes", help="sensor rig (default nuscenes)")
     p.add_argument("--frames", type=int, default=300, help="keyframes to render (default 300)")
     p.add_argument("--seed", type=int, default=0, help="world, route and noise seed (default 0)")
+    p.add_argument("--drive", type=int, default=0,
+                   help="drive K through the seed's city (default 0, the seed's own drive): K > 0 keeps the city and "
+                        "drives another route over its streets with its own noise and lighting, K days later")
     p.add_argument("--route", choices=ROUTES, default="grid",
                    help="grid: a generated street grid with loops both ways; kitti00: the KITTI-00 trajectory")
     p.add_argument("--kitti-poses", type=Path, default=None,
@@ -75,7 +78,7 @@ def config_from_args(args: argparse.Namespace) -> SynthConfig:
     noise = {} if not args.no_noise else {"lidar_noise": LidarNoise.off(), "pixel_noise": False, "camera_drop": 0.0,
                                           "depth_noise": 0.0}
     return SynthConfig(
-        rig=args.rig, frames=args.frames, seed=args.seed, route=args.route,
+        rig=args.rig, frames=args.frames, seed=args.seed, drive=args.drive, route=args.route,
         kitti_poses=None if args.kitti_poses is None else str(args.kitti_poses),
         keyframe_spacing=args.keyframe_spacing, image_size=args.image_size, night_fraction=args.night_fraction,
         lane_changes=not args.no_lane_changes,
@@ -103,7 +106,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"citysim: error: {err}", file=sys.stderr)
         return 2
     stats = drive.revisits()
-    print(f"bag:        {args.out} ({config.rig} rig, {config.route} route, seed {config.seed})")
+    print(f"bag:        {args.out} ({config.rig} rig, {config.route} route, seed {config.seed}, "
+          f"drive {config.drive})")
     print(f"frames:     {report.frames} ({report.nights} at night, {report.missing_images} camera images dropped)")
     print(f"driven:     {stats.length_m:.0f} m in {stats.duration_s:.0f} s, keyframes every {drive.spacing:g} m")
     print(f"revisits:   {stats.revisits} frames within {stats.radius:g} m of a frame more than {stats.min_gap_s:g} s "

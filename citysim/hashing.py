@@ -37,6 +37,26 @@ def hash_uniform(*keys: int | np.ndarray) -> np.ndarray:
     return (hash_u64(*keys) >> np.uint64(11)).astype(np.float64) * (1.0 / (1 << 53))
 
 
+DRIVE_KEY = 0x0D21FE  # marks the keys of drive K > 0 (non-zero: numpy seed sequences ignore trailing zeros)
+DAY_S = 86400.0
+
+
+def drive_keys(drive: int, *, variant: int = 0) -> tuple[int, ...]:
+    """Extra random keys for drive ``drive`` of a city: none for drive 0 (its streams stay as they were).
+
+    Appended to the keys of a route, noise or lighting stream, they give each drive of one
+    city its own stream while drive 0 keeps exactly the numbers of a city's single drive.
+    ``variant`` > 0 draws another route for the same drive (one that met a pole is re-planned).
+    """
+    if drive < 0:
+        raise ValueError(f"drive={drive}; it must be 0 (the city's first drive) or a positive drive number")
+    if variant < 0 or (drive == 0 and variant):
+        raise ValueError(f"variant={variant} of drive {drive}; drive 0 has only variant 0, other drives 0 or more")
+    if drive == 0:
+        return ()
+    return (DRIVE_KEY, drive, variant) if variant else (DRIVE_KEY, drive)
+
+
 def rng_for(*keys: int) -> np.random.Generator:
     """A numpy Generator seeded by integer keys (order matters)."""
     return np.random.default_rng([int(k) & 0xFFFFFFFF for k in keys])

@@ -8,7 +8,7 @@ from pathlib import Path as FsPath
 import numpy as np
 
 from .ground import LANE_WIDTH, PARKING_WIDTH
-from .hashing import rng_for
+from .hashing import drive_keys, rng_for
 
 Node = tuple[int, int]
 
@@ -159,20 +159,32 @@ def _directed_shortest(graph: StreetGraph, start: tuple[Node, Node], goal: tuple
     return out[::-1]
 
 
-def plan_grid_nodes(graph: StreetGraph, *, length_m: float, seed: int, min_age_m: float = 350.0) -> list[Node]:
+def plan_grid_nodes(graph: StreetGraph, *, length_m: float, seed: int, min_age_m: float = 350.0,
+                    drive: int = 0, variant: int = 0) -> list[Node]:
     """A node sequence at least ``length_m`` long that explores and replays earlier stretches.
 
     After a short exploration, the drive repeatedly goes back to a stretch of 2-3 streets
     driven at least ``min_age_m`` metres earlier (so well over 30 s at city speed) and
     drives it again, alternately in the same and in the opposite direction; the way there
-    often closes a loop as well. U-turns are never made.
+    often closes a loop as well. U-turns are never made. Drive ``drive`` > 0 of the same
+    seed starts on one of drive 0's streets (either way, not at drive 0's start node) and
+    makes its own random choices, so drives of one city share streets; ``variant`` > 0 gives
+    the same drive another plan.
     """
-    rng = rng_for(seed, 2)
-    nx, ny = graph.shape
-    inner = [(i, j) for i in range(1, nx - 1) for j in range(1, ny - 1)]
-    start = inner[int(rng.integers(len(inner)))]
-    first = graph.neighbours(start)
-    nodes = [start, first[int(rng.integers(len(first)))]]
+    rng = rng_for(seed, 2, *drive_keys(drive, variant=variant))
+    if drive == 0:
+        nx, ny = graph.shape
+        inner = [(i, j) for i in range(1, nx - 1) for j in range(1, ny - 1)]
+        start = inner[int(rng.integers(len(inner)))]
+        first = graph.neighbours(start)
+        nodes = [start, first[int(rng.integers(len(first)))]]
+    else:  # on a street of drive 0, either way, but not from drive 0's start: the drives share ground
+        nodes0 = plan_grid_nodes(graph, length_m=length_m, seed=seed, min_age_m=min_age_m)
+        cum0 = np.cumsum([graph.length(a, b) for a, b in zip(nodes0[:-1], nodes0[1:], strict=True)])
+        done = max(int(np.searchsorted(cum0, length_m - 100.0, side="right")), 1)  # well inside drive 0
+        pairs = list(zip(nodes0[:done], nodes0[1:done + 1], strict=True))
+        starts = [(a, b) for a, b in pairs + [(b, a) for a, b in pairs] if a != nodes0[0]]
+        nodes = list(starts[int(rng.integers(len(starts)))])
     cum = [0.0, graph.length(nodes[0], nodes[1])]  # distance driven when reaching nodes[i]
     visits: dict[tuple[Node, Node], int] = {}
     explore_left, opposite = int(rng.integers(3, 5)), bool(rng.uniform() < 0.5)
@@ -214,9 +226,13 @@ def _smooth_step(x: np.ndarray) -> np.ndarray:
     return x * x * (3 - 2 * x)
 
 
-def grid_path(graph: StreetGraph, nodes: list[Node], *, seed: int, speed: float = 10.0, step: float = 0.5) -> Path:
-    """Dense path along a node sequence: right-hand lanes, lane changes, rounded corners, speed profile."""
-    rng = rng_for(seed, 3)
+def grid_path(graph: StreetGraph, nodes: list[Node], *, seed: int, speed: float = 10.0, step: float = 0.5,
+              drive: int = 0) -> Path:
+    """Dense path along a node sequence: right-hand lanes, lane changes, rounded corners, speed profile.
+
+    ``drive`` picks the random stream of lanes and speeds (0: a city's first drive).
+    """
+    rng = rng_for(seed, 3, *drive_keys(drive))
     pieces: list[np.ndarray] = []
     lane = 0
     dirs = [graph.pos(b) - graph.pos(a) for a, b in zip(nodes[:-1], nodes[1:], strict=True)]
@@ -256,11 +272,14 @@ def grid_path(graph: StreetGraph, nodes: list[Node], *, seed: int, speed: float 
             pieces.append((1 - w) ** 2 * p_end + 2 * (1 - w) * w * ctrl + w ** 2 * q)
         pieces.append(pts)
         lane = lane_end
-    return path_from_points(np.concatenate(pieces), speed=speed, seed=seed, step=step)
+    return path_from_points(np.concatenate(pieces), speed=speed, seed=seed, step=step, drive=drive)
 
 
-def path_from_points(points: np.ndarray, *, speed: float, seed: int, step: float = 0.5) -> Path:
-    """Resample points uniformly by arc length; headings from the tangent; time from a speed profile."""
+def path_from_points(points: np.ndarray, *, speed: float, seed: int, step: float = 0.5, drive: int = 0) -> Path:
+    """Resample points uniformly by arc length; headings from the tangent; time from a speed profile.
+
+    ``drive`` picks the random stream of the speed profile (0: a city's first drive).
+    """
     seg = np.hypot(*np.diff(points, axis=0).T)
     s = np.concatenate([[0.0], np.cumsum(seg)])
     keep = np.concatenate([[True], seg > 1e-6])
@@ -271,7 +290,7 @@ def path_from_points(points: np.ndarray, *, speed: float, seed: int, step: float
     yaw = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
     curvature = np.abs(np.gradient(yaw, su))
     curvature = np.convolve(curvature, np.ones(9) / 9, mode="same")
-    rng = rng_for(seed, 4)
+    rng = rng_for(seed, 4, *drive_keys(drive))
     cruise = speed * (1.0 + 0.15 * np.sin(su / rng.uniform(150, 300) + rng.uniform(0, 2 * np.pi)))
     v = np.minimum(cruise, np.sqrt(2.5 / np.maximum(curvature, 1e-6)))
     v = np.maximum(v, 2.5)
@@ -324,13 +343,14 @@ def load_kitti_path(poses_file: str | FsPath) -> Path:
 
 
 def change_lanes(path: Path, *, seed: int, lanes: tuple[float, ...] = (-LANE_WIDTH, 0.0, 0.0, LANE_WIDTH),
-                 every: tuple[float, float] = (150.0, 400.0), blend: float = 30.0) -> Path:
+                 every: tuple[float, float] = (150.0, 400.0), blend: float = 30.0, drive: int = 0) -> Path:
     """The path moved sideways by a lane offset (metres, + = left) that changes every 150-400 m.
 
     Changes are smooth (``blend`` metres); headings follow the lateral motion. Revisits of a
-    street then often happen in another lane than the first visit.
+    street then often happen in another lane than the first visit. ``drive`` picks the
+    random stream (0: a city's first drive).
     """
-    rng = rng_for(seed, 5)
+    rng = rng_for(seed, 5, *drive_keys(drive))
     s = path.s - path.s[0]
     edges, values = [0.0], [float(rng.choice(lanes))]
     while edges[-1] < s[-1]:
@@ -344,6 +364,66 @@ def change_lanes(path: Path, *, seed: int, lanes: tuple[float, ...] = (-LANE_WID
     slope = np.gradient(offset, s) if len(s) > 1 else np.zeros_like(s)
     left = np.stack([-np.sin(path.yaw), np.cos(path.yaw)], axis=1)
     return Path(xy=path.xy + offset[:, None] * left, yaw=path.yaw + np.arctan(slope), s=path.s, t=path.t)
+
+
+def reversed_path(path: Path) -> Path:
+    """The same track driven the other way: arc length and time from 0 at the old end, headings turned."""
+    return Path(xy=path.xy[::-1].copy(), yaw=path.yaw[::-1] + np.pi, s=path.s[-1] - path.s[::-1],
+                t=path.t[-1] - path.t[::-1])
+
+
+def drive_along(track: Path, *, length: float, seed: int, drive: int, variant: int = 0) -> Path:
+    """Drive ``drive`` over a fixed track (the KITTI-00 window a city was built around).
+
+    Drive 0 is the track itself. Drive K > 0 drives it the other way when K is odd, starting
+    between 30 % and all of the track's spare length (beyond ``length`` metres) from its
+    beginning, drawn from the drive's own stream (``variant`` > 0: another draw).
+    """
+    if drive == 0:
+        return track
+    rng = rng_for(seed, 6, *drive_keys(drive, variant=variant))
+    path = reversed_path(track) if drive % 2 else track
+    slack = max(path.length - length - 1.0, 0.0)
+    start = path.s[0] + float(rng.uniform(0.3 * slack, slack))
+    first = max(int(np.searchsorted(path.s, start, side="right")) - 1, 0)
+    return Path(xy=path.xy[first:], yaw=path.yaw[first:], s=path.s[first:], t=path.t[first:] - path.t[first])
+
+
+def _track_xy(track: np.ndarray | Path | Keyframes) -> np.ndarray:
+    xy = track.xy if isinstance(track, Path | Keyframes) else track
+    xy = np.asarray(xy, dtype=np.float64)
+    if xy.ndim != 2 or xy.shape[1] != 2 or len(xy) == 0:
+        raise ValueError(f"positions of shape {xy.shape}; expected N x 2 with N >= 1 (x, y in metres)")
+    return xy
+
+
+def shared_ground(path_a: np.ndarray | Path | Keyframes, path_b: np.ndarray | Path | Keyframes, *,
+                  radius: float = 9.0) -> np.ndarray:
+    """Which positions of drive B lie within ``radius`` metres of drive A's path: a bool per B position.
+
+    A is the polyline through its positions (a dense path or keyframes, in driving order), so
+    B's positions between two of A's keyframes count too. Both must be in one world frame:
+    positions of drives through two different cities are not comparable.
+    """
+    if not radius > 0:
+        raise ValueError(f"radius={radius}; it must be positive (metres)")
+    a, b = _track_xy(path_a), _track_xy(path_b)
+    if len(a) == 1:
+        a = np.concatenate([a, a])
+    p0, p1 = a[:-1], a[1:]
+    lo, hi = np.minimum(p0, p1) - radius, np.maximum(p0, p1) + radius
+    out = np.zeros(len(b), dtype=bool)
+    for start in range(0, len(b), 256):  # consecutive positions are close: their box prunes most segments
+        q = b[start:start + 256]
+        near = np.all((hi >= q.min(axis=0)) & (lo <= q.max(axis=0)), axis=1)
+        if not near.any():
+            continue
+        s0, d = p0[near], p1[near] - p0[near]
+        rel = q[:, None, :] - s0[None, :, :]
+        f = np.clip(np.einsum("qnk,nk->qn", rel, d) / np.maximum(np.einsum("nk,nk->n", d, d), 1e-12), 0.0, 1.0)
+        gap = rel - f[:, :, None] * d[None, :, :]
+        out[start:start + 256] = (np.einsum("qnk,qnk->qn", gap, gap) <= radius * radius).any(axis=1)
+    return out
 
 
 # ----------------------------------------------------------------------------- keyframes, revisits

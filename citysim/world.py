@@ -6,7 +6,7 @@ come from the generators in :mod:`citygen`; parked cars depend on the time of th
 """
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field, fields
 
 import numpy as np
@@ -214,13 +214,78 @@ class World:
             slot_boxes.cylinder(x, y, 3.0, 0.0, 1.0, label=0, mat=Mat.CAR, color=(0, 0, 0))
         self._slot_index = SpatialIndex(slot_boxes.build())
 
-    def objects_near(self, x: float, y: float, r: float, *, stamp: float) -> Objects:
-        """Static objects and the cars parked at ``stamp`` within r metres of (x, y)."""
+    def objects_near(self, x: float, y: float, r: float, *, stamp: float, empty_slots: np.ndarray | None = None
+                     ) -> Objects:
+        """Static objects and the cars parked at ``stamp`` within r metres of (x, y).
+
+        ``empty_slots`` (a bool per slot) leaves those slots without a car (a drive's own lane).
+        """
         static = self.objects.take(self.index.near(x, y, r))
         slots = self._slot_index.near(x, y, r)
+        if empty_slots is not None:
+            slots = slots[~empty_slots[slots]]
         cars = parked_cars(self.slots, slots, stamp=stamp, seed=self.seed, period_s=self.parking_period_s,
                            occupancy=self.parking_occupancy)
         return Objects.concat([static, cars])
+
+    def clearance(self, xy: np.ndarray, *, reach: float = 3.0, below: float = 2.0) -> np.ndarray:
+        """Per ground point (N x 2): metres to the nearest static object a car could hit (its base lower
+        than ``below`` metres: walls, fences, poles, trunks); ``reach`` (or more) where none is that near.
+
+        A route planned without the city (a second drive) must keep clear of them.
+        """
+        xy = np.asarray(xy, dtype=np.float64)
+        out = np.full(len(xy), float(reach))
+        for lo, idx in _chunks_near(xy, self.index, reach):
+            idx = idx[self.objects.z0[idx] < below]
+            if len(idx):
+                d = footprint_distance(xy[lo:lo + _CHUNK], self.objects.take(idx)).min(axis=1)
+                out[lo:lo + _CHUNK] = np.minimum(out[lo:lo + _CHUNK], d)
+        return out
+
+    def slots_near(self, xy: np.ndarray, *, radius: float = 2.2) -> np.ndarray:
+        """A bool per parking slot: would a car there (5.2 x 2 m) come within ``radius`` metres of xy (N x 2)?
+
+        The city keeps drive 0's corridor free of parked cars by this rule; a later drive
+        leaves the slots near its own route empty.
+        """
+        xy = np.asarray(xy, dtype=np.float64)
+        out = np.zeros(len(self.slots), dtype=bool)
+        for lo, idx in _chunks_near(xy, self._slot_index, radius):
+            slot_cars = _slot_boxes(self.slots, idx)
+            near = (footprint_distance(xy[lo:lo + _CHUNK], slot_cars) < radius).any(axis=0)
+            out[idx[near]] = True
+        return out
+
+
+_CHUNK = 64  # ground points per spatial query
+
+
+def _chunks_near(xy: np.ndarray, index: SpatialIndex, reach: float) -> Iterator[tuple[int, np.ndarray]]:
+    """(first point, indices of objects within ``reach`` of any of the next _CHUNK points) along xy."""
+    for lo in range(0, len(xy), _CHUNK):
+        pts = xy[lo:lo + _CHUNK]
+        centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
+        spread = float(np.hypot(*(pts - centre).T).max())
+        yield lo, index.near(float(centre[0]), float(centre[1]), spread + reach)
+
+
+def _slot_boxes(slots: ParkingSlots, idx: np.ndarray) -> Objects:
+    b = ObjectsBuilder()
+    for i in idx:
+        b.box(float(slots.x[i]), float(slots.y[i]), 2.6, 1.0, float(slots.yaw[i]), 0.0, 1.5, label=0, mat=Mat.CAR,
+              color=(0.0, 0.0, 0.0))
+    return b.build()
+
+
+def footprint_distance(xy: np.ndarray, objects: Objects) -> np.ndarray:
+    """M x N ground-plane distances from points xy (M x 2) to the footprints of N objects (negative inside)."""
+    dx = xy[:, 0:1] - objects.cx[None, :]
+    dy = xy[:, 1:2] - objects.cy[None, :]
+    along = np.abs(dx * objects.cos + dy * objects.sin) - objects.hx
+    across = np.abs(-dx * objects.sin + dy * objects.cos) - objects.hy
+    box = np.hypot(np.maximum(along, 0.0), np.maximum(across, 0.0)) + np.minimum(np.maximum(along, across), 0.0)
+    return np.where(objects.kind == 0, box, np.hypot(dx, dy) - objects.hx)
 
 
 CAR_COLORS = np.array([

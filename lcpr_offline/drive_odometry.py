@@ -19,7 +19,6 @@ import time
 import numpy as np
 
 from citysim import SyntheticDrive
-from citysim.hashing import rng_for
 from citysim.lidar import render_lidar
 from lcpr_common.progress import progress_iter
 from lcpr_core.backend.lidar_odometry import KissConfig, KissOdometry
@@ -42,12 +41,10 @@ def dense_drive(drive: SyntheticDrive, *, spacing: float = 1.0) -> SyntheticDriv
 
 def lidar_points(drive: SyntheticDrive, i: int) -> np.ndarray:
     """(N, 3) float64 LiDAR points of frame ``i`` in the LiDAR frame, rendered as ``SyntheticDrive.frame`` does."""
-    rig, stamp = drive.rig, float(drive.keyframes.stamps[i])
-    x, y = (float(v) for v in drive.keyframes.xy[i])
-    objects = drive.world.objects_near(x, y, rig.lidar.max_range + 5.0, stamp=stamp)
-    rng = rng_for(drive.config.seed, 40, i)
+    rig = drive.rig
+    objects = drive.objects_at(i, rig.lidar.max_range + 5.0)
     cloud = render_lidar(objects, drive.world.ground, rig.lidar, drive.pose(i) @ rig.lidar.base_T_lidar,
-                         float(drive.keyframes.yaw[i]), rng, noise=drive.config.lidar_noise)
+                         float(drive.keyframes.yaw[i]), drive.noise_rng(i), noise=drive.config.lidar_noise)
     return np.stack([cloud["x"], cloud["y"], cloud["z"]], axis=1).astype(np.float64)
 
 

@@ -18,7 +18,7 @@ REVISIT = 100.0  # s from a scan to the camera frame of the same place
 
 def short_drive(**options: object) -> tuple[SyntheticDrive, list[LabelledScan], list[CameraFrame]]:
     """(the drive, its FRAMES labelled scans, its FRAMES camera frames of the revisit); ``options`` go to
-    SynthConfig (e.g. depth_noise=0.0 for exact depth)."""
+    SynthConfig (e.g. depth_noise=0.0 for exact depth, drive=1 for another route through the same city)."""
     synth = SyntheticDrive(SynthConfig(rig="kitti", frames=FRAMES, route="grid", image_size=(320, 96), seed=0,
                                        camera_drop=0.0, keyframe_spacing=2.5, **options))  # type: ignore[arg-type]
     camera = synth.rig.cameras[0]

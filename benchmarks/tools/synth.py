@@ -47,6 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--image-size", type=image_size, default=None, metavar="WIDTHxHEIGHT")
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--drive", type=int, default=0, help="drive K through the seed's city (citysim --drive)")
     p.add_argument("--out", type=Path, default=None, help="bag path (default: a temporary folder, removed)")
     args = p.parse_args(argv)
 
@@ -55,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     start = time.perf_counter()
     cpu0 = time.process_time()
     drive = SyntheticDrive(SynthConfig(rig=args.rig, route=args.route, frames=args.frames, seed=args.seed,
-                                       image_size=args.image_size))
+                                       drive=args.drive, image_size=args.image_size))
     build_s = time.perf_counter() - start
     per_frame: list = []
 
