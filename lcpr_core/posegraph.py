@@ -54,7 +54,7 @@ from .geometry import (
 )
 
 __all__ = [
-    "DriftModel", "LoopConstraint", "PoseGraphConfig", "PoseGraphResult", "ROBUST_KERNELS",
+    "DriftModel", "LoopConstraint", "drift_step", "PoseGraphConfig", "PoseGraphResult", "ROBUST_KERNELS",
     "ate_rmse", "check_covariances", "check_poses", "drift_odometry", "lidar_to_body", "optimize_pose_graph",
     "plot_trajectories",
     "relative_pose_error", "rotation_angle_deg", "rotation_error_deg", "to_gtsam_covariance", "yaw_deg",
@@ -145,15 +145,21 @@ def drift_odometry(truth: np.ndarray, *, model: DriftModel = DriftModel()) -> tu
     drifted[0] = poses[0]
     covs = np.zeros((max(n - 1, 0), 6, 6))  # (N-1, 6, 6)
     for i in range(n - 1):
-        rel = relative(poses[i], poses[i + 1])
-        sigmas = model.step_sigmas(float(np.linalg.norm(rel[:3, 3])))
-        noise = rng.standard_normal(6) * sigmas  # (x, y, z, roll, pitch, yaw)
-        noisy = rel.copy()
-        noisy[:3, :3] = so3_exp(noise[3:]) @ rel[:3, :3]
-        noisy[:3, 3] += noise[:3]
+        noisy, sigmas = drift_step(relative(poses[i], poses[i + 1]), model=model, rng=rng)
         drifted[i + 1] = drifted[i] @ noisy
         covs[i] = np.diag(sigmas**2)
     return drifted, covs
+
+
+def drift_step(rel: np.ndarray, *, model: DriftModel, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """One true step ``rel`` (4, 4) as the odometry reports it, ``(Exp(dtheta) @ R, t + dt)``, and the (6,) std
+    devs its noise was drawn with (:func:`drift_odometry`, one step at a time: a stream drifts the same way)."""
+    sigmas = model.step_sigmas(float(np.linalg.norm(rel[:3, 3])))
+    noise = rng.standard_normal(6) * sigmas  # (x, y, z, roll, pitch, yaw)
+    noisy = rel.copy()
+    noisy[:3, :3] = so3_exp(noise[3:]) @ rel[:3, :3]
+    noisy[:3, 3] += noise[:3]
+    return noisy, sigmas
 
 
 # ============================================================================ pose graph

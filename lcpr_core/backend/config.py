@@ -21,7 +21,8 @@ from ..loop_report import DEFAULT_LOOP_COVARIANCE
 from ..posegraph import ROBUST_KERNELS, DriftModel, check_poses
 from .consistency import chi2_quantile_6dof
 
-__all__ = ["FACTORIZATIONS", "BackendConfig", "KeyframeRule", "LoopPolicy", "OdometryNoise", "config_dict"]
+__all__ = ["FACTORIZATIONS", "BackendConfig", "KeyframeRule", "LoopPolicy", "OdometryNoise", "SessionPolicy",
+           "config_dict"]
 
 FACTORIZATIONS = ("auto", "cholesky", "qr")
 _SLACK = 1e-6  # m, rad and s: round-off allowed when a keyframe criterion is compared
@@ -170,6 +171,38 @@ class LoopPolicy:
 
 
 @dataclass(frozen=True, kw_only=True)
+class SessionPolicy:
+    """When a new session (a restart in a prior map, another robot) is placed in the map frame.
+
+    A loop between a session not yet placed and one that is cannot be judged against the estimate: nothing
+    relates the two frames yet. Such loops wait; each says where the new session's odometry frame lies in the
+    map, and two agree when that holds within their covariances and the drift between their ends (pairwise
+    consistency, as PCM). The session is anchored on the largest set that agrees pairwise once it holds
+    ``min_loops`` loops spanning ``min_spread_m`` of its travel. Later loops that contradict the anchor wait
+    in turn; a larger agreeing set of them moves the anchor (docs/sessions.md).
+    """
+
+    min_loops: int = param(3, "loops that agree pairwise which place a new session in the map frame", lo=2, hi=1000)
+    min_spread_m: float = param(10.0, "m of the new session's travel the anchoring loops must span", lo=0.0,
+                                hi=1e6)
+    gate: float = param(0.999, "chi-square probability (6 dof) under which two inter-session loops agree", lo=1e-6,
+                        hi=0.999999)
+    hold_sigma: float = param(0.01, "std dev (m and rad) holding every node of a loaded prior map at its saved "
+                                    "estimate (PoseGraphBackend.load(hold=True), the node's prior_graph): "
+                                    "today's run is placed in yesterday's map and does not bend it", lo=1e-6,
+                              hi=1e3)
+    max_waiting: int = param(200, "inter-session loops kept waiting per session (anchor evidence or "
+                                  "contradiction); the oldest is dropped and counted beyond it", lo=2, hi=100000)
+
+    def __post_init__(self) -> None:
+        check_fields(self, error=bad_option, prefix="SessionPolicy.")
+
+    def threshold(self) -> float:
+        """The squared Mahalanobis distance under which two inter-session loops agree."""
+        return chi2_quantile_6dof(self.gate)
+
+
+@dataclass(frozen=True, kw_only=True)
 class BackendConfig:
     """Everything :class:`PoseGraphBackend` is configured with."""
 
@@ -177,6 +210,7 @@ class BackendConfig:
     keyframes: KeyframeRule = field(default_factory=KeyframeRule)
     odometry: OdometryNoise = field(default_factory=OdometryNoise)
     loops: LoopPolicy = field(default_factory=LoopPolicy)
+    sessions: SessionPolicy = field(default_factory=SessionPolicy)
     prior_sigma: float = 1e-3  # std dev (m and rad) of the prior holding the first node at its odometry
     relinearize_threshold: float = 0.1  # rad: iSAM2 relinearises a node whose rotation update exceeds this
     # m: ... or whose translation update exceeds this (looser is cheaper but costs ATE: the translation's
@@ -217,7 +251,8 @@ class BackendConfig:
             raise BackendError(f"{err} (got {show(self.base_T_lidar)})", reason="bad option") from err
         ext.flags.writeable = False
         object.__setattr__(self, "base_T_lidar", ext)
-        for name, kind in (("keyframes", KeyframeRule), ("odometry", OdometryNoise), ("loops", LoopPolicy)):
+        for name, kind in (("keyframes", KeyframeRule), ("odometry", OdometryNoise), ("loops", LoopPolicy),
+                           ("sessions", SessionPolicy)):
             require(isinstance(getattr(self, name), kind),
                     f"BackendConfig.{name}={getattr(self, name)!r}; expected a {kind.__name__}")
         for name in ("prior_sigma", "relinearize_threshold", "relinearize_translation"):
@@ -232,7 +267,8 @@ class BackendConfig:
 
 def config_dict(config: BackendConfig) -> dict[str, Any]:
     """A JSON-ready summary of a config (reports, benchmarks)."""
-    out: dict[str, Any] = {name: asdict(getattr(config, name)) for name in ("keyframes", "odometry", "loops")}
+    out: dict[str, Any] = {name: asdict(getattr(config, name))
+                           for name in ("keyframes", "odometry", "loops", "sessions")}
     out.update(base_T_lidar=np.asarray(config.base_T_lidar).tolist(), prior_sigma=config.prior_sigma,
                relinearize_threshold=config.relinearize_threshold,
                relinearize_translation=config.relinearize_translation, wildfire_threshold=config.wildfire_threshold,

@@ -1,10 +1,11 @@
 """The back end's graph file: one .npz of plain arrays (no pickled objects), written atomically.
 
-It holds the odometry, the graph nodes with their estimates and step covariances, the accepted loops, the
-measured ups and the counters, enough for :meth:`~lcpr_core.backend.PoseGraphBackend.load` to continue the
-graph. Reading checks the schema, the version, every array's shape and the arrays against each other before
-anything is rebuilt, so a damaged file is refused with a :class:`~lcpr_core.errors.BackendError` (reason
-``"bad graph file"``) naming what is wrong, never half-loaded.
+It holds the sessions (name, whether it defines or is placed in the map frame, its rows), the odometry, the
+graph nodes with their estimates and step covariances, the accepted loops, the measured ups and the counters,
+enough for :meth:`~lcpr_core.backend.PoseGraphBackend.load` to continue the graph. Reading checks the
+schema, the version, every array's shape and the arrays against each other before anything is rebuilt, so a
+damaged file is refused with a :class:`~lcpr_core.errors.BackendError` (reason ``"bad graph file"``) naming
+what is wrong, never half-loaded.
 """
 from __future__ import annotations
 
@@ -17,13 +18,14 @@ from typing import Any
 import numpy as np
 
 from ..atomic import atomic_path
-from ..errors import BackendError
+from ..errors import BackendError, InvalidValueError
 from .config import show
+from .session import DEFAULT_SESSION
 
-__all__ = ["GRAPH_SCHEMA", "GRAPH_VERSION", "SavedGraph", "read_graph_file", "write_graph_file"]
+__all__ = ["GRAPH_SCHEMA", "GRAPH_VERSION", "SavedGraph", "SavedSession", "read_graph_file", "write_graph_file"]
 
 GRAPH_SCHEMA = "lcpr_backend_graph"
-GRAPH_VERSION = 2  # 2 added the measured ups; version 1 files (none) still load
+GRAPH_VERSION = 3  # 2 added the measured ups, 3 the sessions; version 1 and 2 files (one session) still load
 BAD_FILE = "bad graph file"
 
 #: every array of a file and its shape (None: any length)
@@ -35,16 +37,48 @@ _SHAPES: dict[str, tuple[int | None, ...]] = {
     "up_world": (3,)}
 
 
+@dataclass(frozen=True)
+class SavedSession:
+    """One session of a file: its name, its place and how many odometry rows and nodes follow in the arrays."""
+
+    name: str
+    rows: int
+    nodes: int
+    root: bool  # defines the map frame
+    anchored: bool  # placed in the map frame
+    frame: np.ndarray  # (4, 4) map_T_odom fixed when it was placed (identity otherwise)
+    anchors: int = 0
+    held: bool = False  # a prior map held at its estimates
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "rows": self.rows, "nodes": self.nodes, "root": self.root,
+                "anchored": self.anchored, "frame": np.asarray(self.frame, np.float64).ravel().tolist(),
+                "anchors": self.anchors, "held": self.held}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> SavedSession:
+        frame = np.array(d["frame"], np.float64)
+        if frame.shape != (16,) or not np.isfinite(frame).all():
+            raise InvalidValueError(f"frame of session {d.get('name')!r} is not 16 finite numbers")
+        return cls(name=str(d["name"]), rows=int(d["rows"]), nodes=int(d["nodes"]), root=bool(d["root"]),
+                   anchored=bool(d["anchored"]), frame=frame.reshape(4, 4), anchors=int(d.get("anchors", 0)),
+                   held=bool(d.get("held", False)))
+
+
 @dataclass
 class SavedGraph:
-    """What a graph file holds: N odometry messages, K nodes, L loops, U measured ups and the counters."""
+    """What a graph file holds: sessions, N odometry messages, K nodes, L loops, U measured ups and the counters.
+
+    The arrays hold the sessions one after another, in the order of ``sessions``; node indices are rows within
+    their session, loop and up nodes positions among all nodes.
+    """
 
     base_T_lidar: np.ndarray  # (4, 4) the extrinsic the loops were taken with
     stamps: np.ndarray  # (N,) odometry stamps, increasing
     odometry: np.ndarray  # (N, 4, 4) world_T_base of each odometry message
-    node_index: np.ndarray  # (K,) odometry row of each graph node
+    node_index: np.ndarray  # (K,) odometry row of each graph node within its session
     node_estimate: np.ndarray  # (K, 4, 4) the graph's estimate of each node
-    step_covariance: np.ndarray  # (K - 1, 6, 6) ROS-order covariance of each node step
+    step_covariance: np.ndarray  # (K, 6, 6) ROS-order covariance of the step to each node (zero for a first)
     loop_nodes: np.ndarray  # (L, 2) (parent, child) nodes of each accepted loop
     loop_measured: np.ndarray  # (L, 4, 4) parent_T_child
     loop_covariance: np.ndarray  # (L, 6, 6) ROS order, in the parent node's frame
@@ -57,12 +91,16 @@ class SavedGraph:
     rejected: int  # loops that failed the consistency check
     redundant: int  # loops skipped as redundant
     refused: dict[str, int]  # inputs refused, by reason
+    sessions: list[SavedSession]
+    inter_session: dict[str, int]  # inter-session loops by outcome, anchors
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The file's arrays: the schema, the version, every array of :data:`_SHAPES` and the counters."""
-        counters = {"rejected": self.rejected, "redundant": self.redundant, "refused": dict(self.refused)}
+        counters = {"rejected": self.rejected, "redundant": self.redundant, "refused": dict(self.refused),
+                    "inter_session": dict(self.inter_session)}
         return {"schema": np.array(GRAPH_SCHEMA), "version": np.array(GRAPH_VERSION, np.int64),
-                **{name: getattr(self, name) for name in _SHAPES}, "counters": np.array(json.dumps(counters))}
+                **{name: getattr(self, name) for name in _SHAPES}, "counters": np.array(json.dumps(counters)),
+                "sessions": np.array(json.dumps([info.to_dict() for info in self.sessions]))}
 
     @classmethod
     def from_arrays(cls, data: dict[str, np.ndarray], where: str, *, base_T_lidar: np.ndarray) -> SavedGraph:
@@ -75,7 +113,7 @@ class SavedGraph:
         if schema != GRAPH_SCHEMA:
             raise bad(f"schema {schema!r}; expected {GRAPH_SCHEMA!r} (a file written by PoseGraphBackend.save)")
         version = int(data["version"]) if "version" in data else None
-        if version not in (1, GRAPH_VERSION):
+        if version not in (1, 2, GRAPH_VERSION):
             raise bad(f"version {version!r}; this back end reads versions 1 to {GRAPH_VERSION}")
         if version == 1:  # before measured ups
             data = {**data, "up_stamps": np.zeros(0), "up_nodes": np.zeros(0, np.int64), "up_body": np.zeros((0, 3)),
@@ -91,11 +129,31 @@ class SavedGraph:
             raise bad(f"saved with base_T_lidar {show(data['base_T_lidar'])}, but this back end has "
                       f"{show(base_T_lidar)}; loops from another extrinsic would not fit its graph")
         n, k, nl = len(data["stamps"]), len(data["node_index"]), len(data["loop_nodes"])
-        idx = data["node_index"]
+        if version < 3:  # one session; its first node's step held no covariance
+            data = {**data, "step_covariance": np.concatenate([np.zeros((min(k, 1), 6, 6)), data["step_covariance"]])}
+            sessions = [SavedSession(name=DEFAULT_SESSION, rows=n, nodes=k, root=True, anchored=True, frame=np.eye(4))]
+        else:
+            try:
+                sessions = [SavedSession.from_dict(d) for d in json.loads(str(data["sessions"]))]
+            except (KeyError, ValueError, TypeError, AttributeError) as err:
+                raise bad(f"sessions cannot be read ({err})") from err
+            names = [info.name for info in sessions]
+            if len(set(names)) != len(names) or sum(info.root for info in sessions) > 1:
+                raise bad(f"sessions {names} repeat a name or hold more than one map-frame session")
+        if (sum(info.rows for info in sessions) != n or sum(info.nodes for info in sessions) != k
+                or any(info.rows < 0 or info.nodes < 0 or (info.rows and not info.nodes) for info in sessions)):
+            raise bad(f"inconsistent arrays: the sessions hold {sum(info.rows for info in sessions)} odometry rows and "
+                      f"{sum(info.nodes for info in sessions)} nodes, the arrays {n} and {k}; the file is damaged")
+        row0 = node0 = 0
+        for info in sessions:
+            idx = data["node_index"][node0:node0 + info.nodes]
+            if (np.any(np.diff(data["stamps"][row0:row0 + info.rows]) <= 0)
+                    or (info.nodes and (idx[0] != 0 or np.any(np.diff(idx) <= 0) or idx[-1] >= info.rows))):
+                raise bad(f"inconsistent arrays: session {info.name!r} has stamps or node rows that do not "
+                          "increase; the file is damaged")
+            row0, node0 = row0 + info.rows, node0 + info.nodes
         if (len(data["odometry"]) != n or len(data["node_estimate"]) != k
-                or len(data["step_covariance"]) != max(k - 1, 0)
-                or (k and (idx[0] != 0 or np.any(np.diff(idx) <= 0) or idx[-1] >= n))
-                or np.any(np.diff(data["stamps"]) <= 0) or (n and not k)
+                or len(data["step_covariance"]) != k
                 or any(len(data[f"loop_{s}"]) != nl for s in ("measured", "covariance", "stamps", "chi2"))
                 or (nl and (data["loop_nodes"].min() < 0 or data["loop_nodes"].max() >= k))
                 or len(data["up_nodes"]) != len(data["up_stamps"]) or len(data["up_body"]) != len(data["up_stamps"])
@@ -106,9 +164,11 @@ class SavedGraph:
             counters = json.loads(str(data["counters"]))
             rejected, refused = int(counters["rejected"]), {str(a): int(b) for a, b in counters["refused"].items()}
             redundant = int(counters.get("redundant", 0))
+            inter = {str(a): int(b) for a, b in counters.get("inter_session", {}).items()}
         except (KeyError, ValueError, TypeError, AttributeError) as err:
             raise bad(f"counters cannot be read ({err})") from err
-        return cls(**{name: data[name] for name in _SHAPES}, rejected=rejected, redundant=redundant, refused=refused)
+        return cls(**{name: data[name] for name in _SHAPES}, rejected=rejected, redundant=redundant, refused=refused,
+                   sessions=sessions, inter_session=inter)
 
 
 def write_graph_file(path: str | os.PathLike[str], graph: SavedGraph) -> None:

@@ -252,3 +252,17 @@ def test_pose_graph_error_is_an_lcpr_error() -> None:
 def test_bad_input_is_refused_naming_the_value(call, message: str) -> None:
     with pytest.raises(PoseGraphError, match=message):
         call()
+
+
+def test_a_stream_drifted_step_by_step_is_the_chain_drift_odometry_makes() -> None:
+    from lcpr_core.posegraph import drift_step
+
+    truth = np.stack([np.eye(4)] * 30)
+    truth[:, 0, 3] = np.arange(30) * 1.5
+    model = DriftModel(seed=4)
+    chain, _ = drift_odometry(truth, model=model)
+    rng = np.random.default_rng(model.seed)
+    streamed = [truth[0]]
+    for i in range(1, len(truth)):
+        streamed.append(streamed[-1] @ drift_step(np.linalg.inv(truth[i - 1]) @ truth[i], model=model, rng=rng)[0])
+    np.testing.assert_allclose(np.stack(streamed), chain, atol=1e-12)
