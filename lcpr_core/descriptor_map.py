@@ -139,9 +139,22 @@ class DescriptorMap(RowAccess):
         return [names[c] for c in self._source_codes.view().tolist()]
 
     @property
+    def stamps(self) -> np.ndarray:
+        """(N,) float64 stamp of each entry, in insertion order; read-only."""
+        return self._rows.stamps
+
+    @property
     def source_codes(self) -> np.ndarray:
         """(N,) int32 index into the source names per entry; read-only, O(1) (``sources`` builds a list)."""
         return self._source_codes.view()
+
+    def source_at(self, row: int) -> str:
+        """The source name of the entry at ``row`` (insertion position, not id)."""
+        return self._source_names[int(self._source_codes.view()[row])]
+
+    def source_code_of(self, name: str) -> int | None:
+        """The code ``source_codes`` holds for source ``name``; None when no entry has that source."""
+        return self._source_lookup.get(name)
 
     @property
     def orientations(self) -> np.ndarray:
@@ -169,6 +182,12 @@ class DescriptorMap(RowAccess):
             return row if row < len(ids) and ids[row] == keyframe_id else None
         found = np.flatnonzero(ids == keyframe_id)
         return int(found[0]) if len(found) else None
+
+    def descriptor_at(self, row: int) -> np.ndarray:
+        """(D,) float32 copy of the descriptor at ``row`` (insertion position, not id)."""
+        if not 0 <= row < len(self):
+            raise MapError(f"row {row} of a map of {len(self)} entries; expected 0..{len(self) - 1}")
+        return self._xb()[row].copy()
 
     @property
     def descriptors(self) -> np.ndarray:
@@ -244,13 +263,15 @@ class DescriptorMap(RowAccess):
         k: int = 20,
         exclude_after: float | ArrayLike | None = None,
         max_distance: float | None = None,
+        allowed: np.ndarray | None = None,
     ) -> list[Match] | list[list[Match]]:
         """Nearest entries to one (D,) query -> list[Match], or to (Q, D) -> list[list[Match]].
 
         exclude_after: entries with stamp > exclude_after are skipped (pass
         query_stamp - window); a float for all queries or one per query (Q,).
-        max_distance: drop hits farther than this (L2). Hits are sorted by
-        distance, at most k per query, fewer if the map (or window) is smaller.
+        max_distance: drop hits farther than this (L2). allowed: a bool mask over the first rows (rows
+        beyond it are not allowed); only those rows are searched (not with exclude_after). Hits are sorted
+        by distance, at most k per query, fewer if the map (or window) is smaller.
         """
         single = np.ndim(query) == 1
         q = self._check_vectors(query, "query")  # (Q, D)
@@ -258,6 +279,16 @@ class DescriptorMap(RowAccess):
             raise MapError(f"k={k!r} is not accepted; it must be a positive integer")
         if max_distance is not None and not (max_distance >= 0):
             raise MapError(f"max_distance={max_distance!r} is not accepted; it must be >= 0 or None")
+        if allowed is not None:
+            mask = np.asarray(allowed)
+            if exclude_after is not None or mask.dtype != np.bool_ or mask.ndim != 1 or len(mask) > len(self):
+                raise MapError(f"allowed of dtype {mask.dtype} shape {mask.shape} (exclude_after "
+                               f"{exclude_after!r}); expected a bool mask over at most the map's {len(self)} rows, "
+                               "without exclude_after")
+            full = np.zeros(len(self), np.bool_)
+            full[: len(mask)] = mask
+            dist, pos = self._search_mask(q, int(k), full)
+            return self._hits(dist, pos, max_distance, single)
         windows = _check_windows(exclude_after, len(q))
         if windows is None or windows.ndim == 0:
             after = None if windows is None else float(windows)
@@ -266,7 +297,11 @@ class DescriptorMap(RowAccess):
             blocks = [self._search_block(q[i : i + 1], int(k), float(w)) for i, w in enumerate(windows)]
             dist = np.concatenate([b[0] for b in blocks]) if blocks else np.empty((0, k), np.float32)
             pos = np.concatenate([b[1] for b in blocks]) if blocks else np.empty((0, k), np.int64)
-        results = [self._matches(dist[i], pos[i], max_distance) for i in range(len(q))]
+        return self._hits(dist, pos, max_distance, single)
+
+    def _hits(self, dist: np.ndarray, pos: np.ndarray, max_distance: float | None, single: bool
+              ) -> list[Match] | list[list[Match]]:
+        results = [self._matches(dist[i], pos[i], max_distance) for i in range(len(dist))]
         return results[0] if single else results
 
     def _search_block(self, q: np.ndarray, k: int, after: float | None) -> tuple[np.ndarray, np.ndarray]:
@@ -288,7 +323,12 @@ class DescriptorMap(RowAccess):
                 return _exact(q, self._xb()[:end], k, None)
             return self._index_search(q, k, faiss.IDSelectorRange(0, end))
         # Stamps out of order: select allowed rows with a bitmap (O(N) per search).
-        allowed = stamps <= after
+        return self._search_mask(q, k, stamps <= after)
+
+    def _search_mask(self, q: np.ndarray, k: int, allowed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_search_block` over the rows where the (N,) bool mask ``allowed`` holds."""
+        n = len(self)
+        empty = (np.full((len(q), k), np.inf, np.float32), np.full((len(q), k), -1, np.int64))
         count = int(allowed.sum())
         if count == 0:
             return empty
@@ -368,6 +408,21 @@ class DescriptorMap(RowAccess):
             header[_SC_HEADER] = scs.config.describing()
             arrays[_SCAN_CONTEXTS] = np.ascontiguousarray(scs.matrices())
         write_map_file(path, header, arrays, kind="descriptor map")
+
+    @classmethod
+    def keyframe_sessions(cls, path: str | os.PathLike[str]) -> tuple[list[str], np.ndarray]:
+        """(session name, stamp) of every keyframe of the map file at ``path``, read without building its index
+        (what a back end checks a prior graph against: ``PoseGraphBackend.check_map``)."""
+        where = os.fspath(path)
+        header, data = read_map_file(where, kind="map file", file_format=_FORMAT, versions=_READABLE_VERSIONS,
+                                     required=_NPZ_KEYS, optional_group=_CLOUD_KEYS,
+                                     optional=(_ORIENTATIONS, _SCAN_CONTEXTS))
+        check_header_fields(header, (("sources", list),), kind="map file", where=where)
+        names, codes = header["sources"], np.asarray(data["source_codes"])
+        bad_codes = len(codes) and (codes.min() < 0 or codes.max() >= len(names))
+        if not all(isinstance(n, str) for n in names) or bad_codes:
+            raise MapError(f"map file {where}: its sources {names!r} do not name every entry's source code")
+        return [names[int(c)] for c in codes], np.asarray(data["stamps"], np.float64)
 
     @classmethod
     def load(cls, path: str | os.PathLike[str], *, expect: MapConfig | None = None) -> DescriptorMap:

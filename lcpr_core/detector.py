@@ -7,6 +7,7 @@ an import contract (setup.cfg) keeps every other module from importing the folde
 """
 from .lcpr.detector import (
     MATCH_METHODS,
+    PEER_REFUSALS,
     REASONS,
     Candidate,
     DescribedBatch,
@@ -15,9 +16,14 @@ from .lcpr.detector import (
     KeyframeConfig,
     LoopDetector,
     MatchConfig,
+    PeerKeyframe,
+    PeerKeyframeError,
     Result,
     SensorConfig,
+    decode_peer_keyframe,
+    encode_peer_keyframe,
 )
 
 __all__ = ["MATCH_METHODS", "REASONS", "Candidate", "DescribedBatch", "DetectorConfig", "Frame", "KeyframeConfig",
-           "LoopDetector", "MatchConfig", "Result", "SensorConfig"]
+           "LoopDetector", "MatchConfig", "PEER_REFUSALS", "PeerKeyframe", "PeerKeyframeError", "Result",
+           "SensorConfig", "decode_peer_keyframe", "encode_peer_keyframe"]

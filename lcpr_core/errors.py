@@ -65,3 +65,7 @@ class RuntimeSetupError(LcprError):
 
 class DeviceError(LcprError):
     """The device failed while describing a frame (a GPU out of memory); the frame is skipped, nothing stored."""
+
+
+class PeerKeyframeError(InvalidValueError):
+    """A peer keyframe record that cannot be read (truncated, not a record, inconsistent sizes)."""

@@ -306,15 +306,23 @@ class ScanContextRows:
             out.add(m if m.any() else None)
         return out
 
-    def search(self, sc: np.ndarray, *, rows: int, k: int, max_distance: float = 1.0) -> list[tuple[int, float]]:
-        """(row, sc_distance) of the best ``k`` among rows ``[0, rows)``, nearest first, distances <= max_distance.
+    def search(self, sc: np.ndarray, *, rows: int, k: int, max_distance: float = 1.0,
+               allowed: np.ndarray | None = None) -> list[tuple[int, float]]:
+        """(row, sc_distance) of the best ``k`` among rows ``[0, rows)`` (those where the bool mask ``allowed``
+        holds, when given), nearest first, distances <= max_distance.
 
         The ``config.candidates`` nearest ring keys (at least ``k``) are compared under every column shift.
         """
         q = _check_sc(sc, "sc")
         if k < 1:
             raise InvalidValueError(f"k={k}; it must be at least 1")
-        allowed = np.flatnonzero(self._occupied.view()[: max(0, min(rows, len(self)))])
+        occupied = self._occupied.view()[: max(0, min(rows, len(self)))]
+        if allowed is not None:
+            mask = np.zeros(len(occupied), np.bool_)
+            given = np.asarray(allowed, np.bool_)[: len(occupied)]
+            mask[: len(given)] = given
+            occupied = occupied & mask
+        allowed = np.flatnonzero(occupied)
         if len(allowed) == 0 or not q.any():
             return []
         key = ring_key(q, kind=self.config.ring_key)

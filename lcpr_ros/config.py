@@ -53,6 +53,12 @@ class NodeConfig:
     lidar_only: bool = param(False, "no camera subscriptions: every frame is described with all camera slots "
                                     "empty, verified and published as usual (a vehicle with a LiDAR and no "
                                     "surround cameras)")
+    peers: tuple[str, ...] = param((), "namespaces of the robots whose keyframes this node matches against: each "
+                                        "one's <namespace>/lcpr/keyframes is subscribed (e.g. ['/robot2'] -> "
+                                        "/robot2/lcpr/keyframes); give every robot its own session name (session)")
+    keyframes_history: int = param(256, "~/keyframes messages kept (reliable, transient local) for peers that start "
+                                        "late: a keyframe every 0.5 s at most (keyframe.min_interval), so 256 cover "
+                                        "2 minutes", lo=1, hi=100_000)
     tf_static_topic: str = param("/tf_static", "tf2_msgs/TFMessage topic the submap mount (submap.lidar_xyz / "
                                                "lidar_rpy) is read from: the transform from the odometry's child "
                                                "frame to the clouds' frame, once heard, replaces those parameters; "
@@ -65,6 +71,14 @@ class NodeConfig:
         require(len(set(self.camera_topics)) == len(self.camera_topics),
                f"camera_topics={list(self.camera_topics)} repeat a topic; give one topic per camera")
         require(bool(self.lidar_topic), "lidar_topic is empty; a PointCloud2 topic is required")
+        require(all(p.startswith("/") and p.strip("/") and " " not in p for p in self.peers),
+                f"peers={list(self.peers)}; give each robot's namespace from the root, e.g. ['/robot2']")
+        require(len({p.rstrip("/") for p in self.peers}) == len(self.peers),
+                f"peers={list(self.peers)} repeat a namespace; give each robot once")
+
+    def peer_topics(self) -> tuple[str, ...]:
+        """The ``~/keyframes`` topic of each peer (``peers``), in order."""
+        return tuple(f"{p.rstrip('/')}/lcpr/keyframes" for p in self.peers)
 
     def subscribed_cameras(self) -> tuple[str, ...]:
         """The camera topics the node subscribes to (none when ``lidar_only``)."""

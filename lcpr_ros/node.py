@@ -22,11 +22,11 @@ from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2
-from std_msgs.msg import Float64MultiArray
+from std_msgs.msg import Float64MultiArray, String, UInt8MultiArray
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from lcpr_core.detector import DetectorConfig, Frame, LoopDetector
+from lcpr_core.detector import DetectorConfig, Frame, LoopDetector, PeerKeyframe, Result, encode_peer_keyframe
 from lcpr_core.geometry import xyz_rpy_from_pose
 from lcpr_core.lcpr.preprocess.camera import CameraInput
 from lcpr_core.pretrained import describe_weights, threshold_text
@@ -39,12 +39,13 @@ from ros_common.inputs import (
     cloud_points,
     compressed_payload,
     offer_odometry,
+    peer_keyframe,
     raw_payload,
 )
 from ros_common.mapstore import answer_save_request, save_under_lock
 from ros_common.poses import NoPoses, OdometryBuffer, PoseSource
 from ros_common.process import finish_and_save, node_parser, run_node
-from ros_common.qos import CANDIDATE_QOS, QOS_ADAPTED, SensorSubscription
+from ros_common.qos import CANDIDATE_QOS, LATCHED_QOS, QOS_ADAPTED, SensorSubscription, keyframes_qos
 from ros_common.ros_params import RuntimeParameters, declare
 from ros_common.stamps import NS_PER_S, stamp_ns
 from ros_common.static_tf import STATIC_QOS, StaticExtrinsic, tf_message_type
@@ -54,7 +55,7 @@ from ros_common.worker import Worker
 from .config import NodeConfig
 from .mapstore import load_prior_map, save_map
 from .markers import LoopMarkers, MarkerSink, NoMarkers
-from .outputs import candidates_msg, loop_closure_msg, up_msg
+from .outputs import SessionTable, candidates_msg, keyframe_msg, loop_closure_msg, sessions_msg, up_msg
 from .params import RENAMED, Settings, all_leaves, describe_all, settings_from
 from .sync import LATE_IMAGE, TIME_JUMPED, SyncedFrame, Synchroniser
 
@@ -67,6 +68,9 @@ LATE_IMAGE_HELP = ("{topic}: an image came after its frame had gone without it (
                    "lcpr_ros.replay.FASTDDS_PROFILE is a template). With Kilted's Fast DDS 3, running this node "
                    "with FASTDDS_BUILTIN_TRANSPORTS=UDPv4 also helps; with Jazzy's it did not")
 FAILED = "frame: processing failed"
+PEER_BUSY = "peer keyframe: dropped while busy"
+PEER_FAILED = "peer keyframe: processing failed"
+PEER_QUEUE = 1024  # peer keyframes waiting for the detector at most (a late start's catch-up from a few peers)
 RELEASE_PERIOD = 0.05  # s between checks for clouds whose wait for images ran out
 SHUTDOWN_TIMEOUT = 60.0  # s the worker may take to finish its frames at shutdown
 
@@ -81,6 +85,10 @@ class LcprNode(NodeStats, Node):
         self.settings: Settings = settings_from(declare(self, self._leaves, renamed=RENAMED))
         node_cfg, det_cfg = self.settings.node, self.settings.detector
         log = self.get_logger()
+        own = f"{self.get_namespace().rstrip('/')}/"
+        if any(f"{p.rstrip('/')}/" == own for p in node_cfg.peers):
+            raise ConfigError(f"peers={list(node_cfg.peers)} names this node's own namespace {self.get_namespace()!r}; "
+                              "give the other robots' namespaces")
         self.init_stats(log.warning, window=node_cfg.diagnostics.window)
         self.verify_time = Window(node_cfg.diagnostics.window)
         self.verdicts = Counts()
@@ -104,6 +112,14 @@ class LcprNode(NodeStats, Node):
         self._loop_pub = self.create_publisher(Float64MultiArray, "~/loop_closure", CANDIDATE_QOS)
         self._candidates_pub = self.create_publisher(Float64MultiArray, "~/candidates", CANDIDATE_QOS)
         self._up_pub = self.create_publisher(Vector3Stamped, "~/up", CANDIDATE_QOS)
+        self._keyframes_pub = self.create_publisher(UInt8MultiArray, "~/keyframes",
+                                                    keyframes_qos(node_cfg.keyframes_history))
+        self._sessions_pub = self.create_publisher(String, "~/sessions", LATCHED_QOS)
+        self._sessions = SessionTable()  # the session codes of ~/candidates
+        self._publish_lock = threading.Lock()  # the table and its topics: two workers publish candidates
+        self._peer_sessions: frozenset[str] = frozenset()  # sessions of the peer keyframes taken so far
+        self._sessions.code(det_cfg.session)
+        self._sessions_pub.publish(sessions_msg(self._sessions.names))
         self._diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._diagnostics = DiagnosticsBuilder(self.get_name())
 
@@ -123,11 +139,20 @@ class LcprNode(NodeStats, Node):
         self.worker: Worker[SyncedFrame] = Worker(self._process, on_dropped=self._on_replaced, name="lcpr-worker",
                                                   on_error=self._on_failed)
         self.worker.start()
+        self.peer_worker: Worker[tuple[str, PeerKeyframe]] = Worker(
+            self._process_peer, max_waiting=PEER_QUEUE, on_dropped=self._on_peer_dropped, name="lcpr-peers",
+            on_error=self._on_peer_failed)
+        self.peer_worker.start()
+        for topic in node_cfg.peer_topics():
+            self.create_subscription(UInt8MultiArray, topic, partial(self._on_peer, topic),
+                                     keyframes_qos(node_cfg.keyframes_history))
         RuntimeParameters(self, self._leaves, self._apply, build=settings_from)
         where = node_cfg.map.path or "memory only"
         cameras = len(node_cfg.subscribed_cameras()) or "no (lidar_only)"
+        peers = ", ".join(node_cfg.peer_topics()) or "none"
         log.info(f"ready: {cameras} cameras, lidar {node_cfg.lidar_topic}, "
-                 f"odometry {node_cfg.odom_topic or 'none'}; map {where} with {len(self.detector.map)} places")
+                 f"odometry {node_cfg.odom_topic or 'none'}; map {where} with {len(self.detector.map)} places; "
+                 f"session {det_cfg.session!r}, peers {peers}")
 
     def _pose_parts(self, cfg: NodeConfig) -> tuple[PoseSource, MarkerSink]:
         """Odometry buffer + markers, or their null objects when there is no odometry topic.
@@ -250,6 +275,17 @@ class LcprNode(NodeStats, Node):
             return
         self._release()
 
+    def _on_peer(self, topic: str, msg: UInt8MultiArray) -> None:
+        """A peer's keyframe: read here, matched and stored by the peer worker (the detector may be busy)."""
+        self.rates.tick(topic)
+        try:
+            kf = peer_keyframe(msg)
+        except InputRejected as err:
+            self._reject(InputRejected(err.reason, f"{topic}: {err.detail}"))
+            return
+        if not self._closed:
+            self.peer_worker.submit((topic, kf))
+
     def _release(self) -> None:
         if self._closed:
             return
@@ -281,12 +317,15 @@ class LcprNode(NodeStats, Node):
         frame = Frame(stamp=synced.stamp_ns / NS_PER_S, images=images, points=synced.points, pose=synced.pose)
         self.get_logger().debug(f"frame {frame.stamp:.9f}: deciding")
         with self._detector_lock:
-            if self._next_detector_config is not None:
-                self.detector.config, self._next_detector_config = self._next_detector_config, None
+            self._take_config()
             if synced.new_session:
                 self.detector.start_session()
             result = self.detector.process(frame)
             max_distance = self.detector.max_distance
+            own = None if result.keyframe_id is None else self.detector.peer_keyframe(result.keyframe_id)
+            peers = self._peer_sessions
+        if own is not None:  # for the peers, first: they match it while this node goes on
+            self._keyframes_pub.publish(keyframe_msg(encode_peer_keyframe(own)))
         for k, why in result.camera_errors.items():  # undecodable bytes: that camera left out of this frame
             self._reject(InputRejected(IMAGE_DECODE, f"{self.settings.node.camera_topics[k]}: {why}"))
         self.decisions.add(result.reason)
@@ -301,15 +340,67 @@ class LcprNode(NodeStats, Node):
         if up is not None:  # before the candidates: the back end holds the keyframe's up when its loops come
             self._up_pub.publish(up)
         if result.candidates:
-            self._candidates_pub.publish(candidates_msg(result))
-            self.markers.publish(result, synced.pose, self.poses.frame_id, max_distance)
-        if result.loop is not None:
-            self._loop_pub.publish(loop_closure_msg(result))
+            self._publish_candidates(result)
+            # a peer's keyframe lies in its own odometry frame: no marker joins it to ours
+            ours = dataclasses.replace(result, candidates=[c for c in result.candidates
+                                                           if c.match_session not in peers])
+            if ours.candidates:
+                self.markers.publish(ours, synced.pose, self.poses.frame_id, max_distance)
+        loop = loop_closure_msg(result, skip_sessions=peers)
+        if loop is not None:
+            self._loop_pub.publish(loop)
             self.loops += 1
         self.latency.add(time.monotonic() - synced.arrival)
         self.model_time.add(result.timings.get("preprocess", 0.0) + result.timings.get("network", 0.0))
         if result.candidates and "verify" in result.timings:  # a keyframe without candidates verifies nothing
             self.verify_time.add(result.timings["verify"])
+
+    def _take_config(self) -> None:
+        """Parameters changed at run time reach the detector between two keyframes (under the detector lock)."""
+        if self._next_detector_config is not None:
+            self.detector.config, self._next_detector_config = self._next_detector_config, None
+
+    def _publish_candidates(self, result: Result) -> None:
+        """``~/candidates``, after ``~/sessions`` when a session is new to the table."""
+        with self._publish_lock:
+            known = len(self._sessions)
+            msg = candidates_msg(result, self._sessions)
+            if len(self._sessions) > known:
+                self._sessions_pub.publish(sessions_msg(self._sessions.names))
+            if msg is not None:
+                self._candidates_pub.publish(msg)
+
+    def _process_peer(self, item: tuple[str, PeerKeyframe]) -> None:
+        """A peer's keyframe matched against this map, verified and stored (the peer worker's thread)."""
+        topic, kf = item
+        with self._detector_lock:
+            self._take_config()
+            result = self.detector.add_peer_keyframe(kf)
+            if result.keyframe_id is not None:
+                self._peer_sessions = self._peer_sessions | {kf.session}
+        if result.keyframe_id is None:  # refused: nothing stored
+            self._reject(InputRejected(result.reason, f"{topic}: {'; '.join(result.errors)}"))
+            return
+        self.decisions.add(result.reason)
+        for candidate in result.candidates:
+            if candidate.verification != "off":
+                self.verdicts.add(candidate.verification)
+        for error in result.errors:
+            self.warnings("verification failed", f"{error}; the candidate counts as unverified, the node goes on")
+        if result.candidates:
+            self._publish_candidates(result)
+            if "verify" in result.timings:
+                self.verify_time.add(result.timings["verify"])
+
+    def _on_peer_dropped(self, item: tuple[str, PeerKeyframe]) -> None:
+        self.drops.add(PEER_BUSY)
+        self.warnings(PEER_BUSY, f"{PEER_QUEUE} peer keyframes were waiting for the detector; the oldest "
+                                 f"({item[0]}, stamp {item[1].stamp:.3f}) was dropped")
+
+    def _on_peer_failed(self, item: tuple[str, PeerKeyframe], err: Exception) -> None:
+        self.drops.add(PEER_FAILED)
+        self.warnings(f"{PEER_FAILED} ({type(err).__name__})",
+                      f"{item[0]} stamp {item[1].stamp:.3f}: {err}; the map is kept, the node goes on")
 
     def _on_replaced(self, frame: SyncedFrame) -> None:
         self.drops.add(BUSY)
@@ -369,6 +460,7 @@ class LcprNode(NodeStats, Node):
         if self._closed:
             return
         self._closed = True
+        self.peer_worker.stop(drain=False, timeout=SHUTDOWN_TIMEOUT)  # the keyframe in progress finishes
         finish_and_save(self, self.worker, self.settings.node.map, self.save_map, timeout=SHUTDOWN_TIMEOUT,
                         what="places")
         self.detector.close()  # verification worker processes, if any

@@ -85,29 +85,22 @@ def describe_all() -> str:
 
 
 MARKDOWN_PAGE = "docs/reference/lcpr_node_parameters.md"
-MARKDOWN_HEADER = f"""# lcpr_node parameters
-
+MARKDOWN_INTRO = """\
 Every parameter of `lcpr_node` (node name `lcpr`) with its default, type, accepted range and
 description, generated from the config dataclasses (`lcpr_core.detector.DetectorConfig`,
 `lcpr_ros.config.NodeConfig`: each field's metadata), as `config/lcpr.yaml` is. "run time" marks
 the parameters that can change while the node runs (`ros2 param set`); the others are read at
 start. Invalid values are refused with the reason, at start (exit 1) and at run time.
-`lcpr_node --help` prints the same list.
-
-Do not edit this page: `test/project/test_docs_site.py` fails when it differs from the dataclasses.
-Regenerate it with
-
-```bash
-.venv/bin/python -c "from lcpr_ros.params import markdown_text; print(markdown_text(), end='')" > {MARKDOWN_PAGE}
-```
-"""
+`lcpr_node --help` prints the same list."""
 
 
 def markdown_text() -> str:
     """docs/reference/lcpr_node_parameters.md: every parameter as Markdown tables (the docs site's page)."""
-    from ros_common.params import to_markdown
+    from ros_common.params import markdown_page
 
     old = "".join(f"- `{name}`: the old name of `{new}`, still read (node overrides and `--params-file`) with a "
                   "deprecation warning.\n" for name, new in RENAMED.items())
     renamed = f"## Renamed parameters\n\n{old}" if old else ""
-    return f"{MARKDOWN_HEADER}\n{to_markdown(all_leaves())}\n{renamed}"
+    page = markdown_page(title="lcpr_node parameters", intro=MARKDOWN_INTRO, page=MARKDOWN_PAGE,
+                         module="lcpr_ros.params", leaves=all_leaves())
+    return f"{page}\n{renamed}"

@@ -8,7 +8,8 @@ with a short, stable reason.
   goes through :func:`camera_input` -> what the describer reads;
 - depth Image: :func:`depth_image` -> H x W float32 metres; label Image: :func:`label_image` -> uint32 ids;
 - CameraInfo: :func:`intrinsics` -> (K, width, height);
-- Odometry: :func:`odometry_pose` -> 4 x 4 pose, or :func:`offer_odometry` into an odometry buffer.
+- Odometry: :func:`odometry_pose` -> 4 x 4 pose, or :func:`offer_odometry` into an odometry buffer;
+- a peer's ``~/keyframes`` UInt8MultiArray: :func:`peer_keyframe` -> its PeerKeyframe.
 
 Works on rclpy and rosbags messages alike (msg_tools reads attribute names only). Every refusal is an
 :class:`~ros_common.errors.InputRejected` whose ``reason`` is one of the constants below; the nodes count
@@ -20,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from lcpr_core.detector import PeerKeyframe, PeerKeyframeError, decode_peer_keyframe
 from msg_tools.camera_info import camera_info_to_model
 from msg_tools.compressed import compressed_bytes, sniff_format
 from msg_tools.errors import (
@@ -51,6 +53,9 @@ LABELS_ENCODING = "labels: unknown encoding"
 LABELS_BAD = "labels: bad image"
 CAMERA_INFO_BAD = "camera_info: bad"
 ODOM_BAD = "odometry: bad pose"
+PEER_UNREADABLE = "peer keyframe: unreadable"
+#: ``layout.dim[0].label`` of a ``~/keyframes`` message (std_msgs/UInt8MultiArray holding one record)
+KEYFRAME_FORMAT = "lcpr_keyframe/1"
 
 LABEL_ENCODINGS = ("mono8", "8UC1", "mono16", "16UC1", "32SC1")
 DEPTH_IMAGE_ENCODINGS = ("32FC1", "16UC1")
@@ -235,10 +240,28 @@ def offer_odometry(buffer: OdometryBuffer, msg: Any) -> None:
         raise InputRejected(f"odometry: {refused}", f"stamp {ns / NS_PER_S:.9f}")
 
 
+# -- peer keyframes (lcpr_node's ~/keyframes) ----------------------------------------------------------
+
+
+def peer_keyframe(msg: Any) -> PeerKeyframe:
+    """std_msgs/UInt8MultiArray from a peer's ``~/keyframes`` -> its keyframe (the record of
+    :mod:`lcpr_core.lcpr.peers`); whether this detector can use it is the detector's to judge."""
+    dims = getattr(getattr(msg, "layout", None), "dim", None) or []
+    label = str(dims[0].label) if len(dims) else ""
+    if label != KEYFRAME_FORMAT:
+        raise InputRejected(PEER_UNREADABLE, f"layout.dim[0].label {label!r}; a peer keyframe carries "
+                                             f"{KEYFRAME_FORMAT!r}")
+    try:
+        return decode_peer_keyframe(bytes(msg.data))
+    except (PeerKeyframeError, TypeError, ValueError) as err:
+        raise InputRejected(PEER_UNREADABLE, str(err)) from err
+
+
 __all__ = [
-    "CAMERA_INFO_BAD", "CLOUD_BAD_LAYOUT", "CLOUD_NAN", "CLOUD_NO_LABEL", "CLOUD_NO_XYZ", "CLOUD_TRUNCATED",
+    "CAMERA_INFO_BAD", "CLOUD_BAD_LAYOUT", "KEYFRAME_FORMAT", "PEER_UNREADABLE",
+    "CLOUD_NAN", "CLOUD_NO_LABEL", "CLOUD_NO_XYZ", "CLOUD_TRUNCATED",
     "DEPTH_BAD", "DEPTH_ENCODING", "DEPTH_IMAGE_ENCODINGS", "IMAGE_DECODE", "IMAGE_ENCODING", "IMAGE_SIZE",
     "LABELS_BAD", "LABELS_ENCODING", "LABEL_ENCODINGS", "ODOM_BAD",
     "camera_input", "cloud_array", "cloud_points", "compressed_payload", "depth_image", "finite_points",
-    "intrinsics", "label_image", "labelled_cloud", "odometry_pose", "offer_odometry", "raw_payload",
+    "intrinsics", "label_image", "labelled_cloud", "odometry_pose", "offer_odometry", "peer_keyframe", "raw_payload",
 ]

@@ -45,9 +45,10 @@ class Leaf:
         return self.kind(value)
 
     def to_python(self, value: Any) -> Any:
-        """rclpy value (list, array.array, scalar) -> the dataclass field's type."""
+        """rclpy value (list, array.array, scalar) -> the dataclass field's type (None: an array declared by
+        type alone, left empty)."""
         if self.array:
-            return tuple(self.kind(v) for v in value)
+            return () if value is None else tuple(self.kind(v) for v in value)
         return self.kind(value)
 
 
@@ -223,6 +224,9 @@ def to_yaml(leaves_: Iterable[Leaf], node_name: str = "/**", header: str = "") -
                 continue
             default = list(item.default) if item.array else item.default
             lines.append(f"{indent}# {item.doc.description}")
+            if item.array and not default:  # rcl's params-file parser refuses an empty list: left out, as a hint
+                lines.append(f"{indent}# {key}: []  (the default; a list given here must not be empty)")
+                continue
             lines.append(f"{indent}{key}: {json.dumps(default)}")  # JSON values are valid YAML flow values
 
     emit(tree, 2)
@@ -234,6 +238,23 @@ def _markdown_cell(text: str) -> str:
     for char in "\\`*_[]|":
         text = text.replace(char, "\\" + char)
     return text.replace("<", "&lt;").replace(">", "&gt;").replace("\n", " ")
+
+
+def markdown_page(*, title: str, intro: str, page: str, module: str, leaves: list[Leaf]) -> str:
+    """A node's parameter reference page: ``title``, ``intro`` (what the parameters come from), the note
+    that the page is generated (regenerated with ``module``'s ``markdown_text`` into ``page``), the tables."""
+    return f"""# {title}
+
+{intro}
+
+Do not edit this page: `test/project/test_docs_site.py` fails when it differs from the dataclasses.
+Regenerate it with
+
+```bash
+.venv/bin/python -c "from {module} import markdown_text; print(markdown_text(), end='')" > {page}
+```
+
+{to_markdown(leaves)}"""
 
 
 def to_markdown(leaves_: Iterable[Leaf]) -> str:

@@ -10,7 +10,8 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from .config import INPUT_QOS
 
-__all__ = ["CANDIDATE_QOS", "INPUT_QOS", "QOS_ADAPTED", "RELIABLE_INPUT_QOS", "SensorSubscription", "input_qos_profile"]
+__all__ = ["CANDIDATE_QOS", "INPUT_QOS", "LATCHED_QOS", "QOS_ADAPTED", "RELIABLE_INPUT_QOS", "SensorSubscription",
+           "input_qos_profile", "keyframes_qos"]
 
 QOS_ADAPTED = "input: re-subscribed best effort"  # the warning's cause (counted once per node)
 
@@ -19,6 +20,18 @@ RELIABLE_INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, relia
 #: Candidate and loop topics: every candidate must arrive.
 CANDIDATE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
                            durability=DurabilityPolicy.VOLATILE)
+
+
+#: ``~/sessions``: the latest table for every subscriber, a late one included.
+LATCHED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def keyframes_qos(depth: int) -> QoSProfile:
+    """``~/keyframes`` (and a peer's subscription to it): reliable and transient local, the last ``depth`` kept,
+    so that a peer started late is sent the keyframes it missed."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def input_qos_profile(name: str) -> QoSProfile:

@@ -12,6 +12,10 @@ from rclpy.parameter import Parameter
 from .errors import ConfigError
 from .params import Leaf, renamed_value
 
+#: an array parameter whose default is empty is declared by its type (rclpy reads ``[]`` as a byte array)
+_ARRAY_TYPES: dict[type, Parameter.Type] = {bool: Parameter.Type.BOOL_ARRAY, int: Parameter.Type.INTEGER_ARRAY,
+                                            float: Parameter.Type.DOUBLE_ARRAY, str: Parameter.Type.STRING_ARRAY}
+
 
 def descriptor(leaf: Leaf) -> ParameterDescriptor:
     """The leaf's ROS descriptor, from its field's metadata: description, read-only unless dynamic, the
@@ -51,8 +55,11 @@ def declare(node: Node, leaves: Sequence[Leaf], *, renamed: Mapping[str, str] | 
             defaults[new] = value  # an override of the new name still wins; checked below
     values: dict[str, Any] = {}
     for leaf in leaves:
+        initial = defaults[leaf.name]
+        if leaf.array and initial == []:  # rclpy would type an empty list as a byte array: declare the type
+            initial = _ARRAY_TYPES[leaf.kind]
         try:
-            param = node.declare_parameter(leaf.name, defaults[leaf.name], descriptor(leaf))
+            param = node.declare_parameter(leaf.name, initial, descriptor(leaf))
         except InvalidParameterTypeException as err:
             hint = " (write a decimal point for a double, e.g. 1.0)" if leaf.kind is float else ""
             raise ConfigError(f"parameter {leaf.name}: {err}{hint}") from err
@@ -69,7 +76,9 @@ def declare(node: Node, leaves: Sequence[Leaf], *, renamed: Mapping[str, str] | 
 
 
 def current_values(node: Node, leaves: Sequence[Leaf]) -> dict[str, Any]:
-    return {leaf.name: leaf.to_python(node.get_parameter(leaf.name).value) for leaf in leaves}
+    # an array declared by its type alone (an empty default) stays uninitialised until given: its value is ()
+    return {leaf.name: leaf.to_python(node.get_parameter_or(leaf.name, Parameter(leaf.name, value=None)).value)
+            for leaf in leaves}
 
 
 class RuntimeParameters:

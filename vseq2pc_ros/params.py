@@ -51,25 +51,17 @@ def describe_all() -> str:
 
 
 MARKDOWN_PAGE = "docs/reference/vseq2pc_node_parameters.md"
-MARKDOWN_HEADER = f"""# vseq2pc_node parameters
-
+MARKDOWN_INTRO = """\
 Every parameter of `vseq2pc_node` (node name `vseq2pc`) with its default, type, accepted range and
 description, generated from `vseq2pc_ros.config.NodeConfig` (each field's metadata), as
 `config/vseq2pc.yaml` is. "run time" marks the parameters that can change while the node runs
 (`ros2 param set`); the others are read at start. Invalid values are refused with the reason, at
-start (exit 1) and at run time. `vseq2pc_node --help` prints the same list.
-
-Do not edit this page: `test/project/test_docs_site.py` fails when it differs from the dataclasses.
-Regenerate it with
-
-```bash
-.venv/bin/python -c "from vseq2pc_ros.params import markdown_text; print(markdown_text(), end='')" > {MARKDOWN_PAGE}
-```
-"""
+start (exit 1) and at run time. `vseq2pc_node --help` prints the same list."""
 
 
 def markdown_text() -> str:
     """docs/reference/vseq2pc_node_parameters.md: every parameter as Markdown tables (the docs site's page)."""
-    from ros_common.params import to_markdown
+    from ros_common.params import markdown_page
 
-    return f"{MARKDOWN_HEADER}\n{to_markdown(all_leaves())}"
+    return markdown_page(title="vseq2pc_node parameters", intro=MARKDOWN_INTRO, page=MARKDOWN_PAGE,
+                         module="vseq2pc_ros.params", leaves=all_leaves())

@@ -40,6 +40,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import logging
+import math
 import time
 from collections.abc import Callable, Hashable, Sequence
 from dataclasses import dataclass, field
@@ -52,6 +53,7 @@ from lcpr_common.params import check_fields, param
 from ..descriptor_map import DescriptorMap, MapConfig, Match
 from ..errors import InvalidValueError, MapSchemaError, VerificationError
 from ..exclusion import matchable_prefix
+from ..geometry import invert
 from ..keyframes import KeyframeConfig, keyframe_reason
 from ..pretrained import AUTO_DISTANCE, effective_max_distance, operating_threshold, resolve_weights
 from ..up import UpConfig, estimate_up
@@ -67,6 +69,7 @@ from ..verification import (
 from ..verification.processes import CloudRef, VerifierProcesses, shared_processes
 from ..verification.submap import build_submap, submap_rows
 from .describer import Describer, ModelConfig
+from .peers import PeerKeyframe, PeerKeyframeError, decode_peer_keyframe, encode_peer_keyframe  # noqa: F401 - lcpr_core.detector's
 from .preprocess.camera import CameraInput
 from .proposers import (
     BUILT_IN_METHODS,
@@ -85,6 +88,22 @@ PREPARED_CACHE = 64  # prepared map clouds kept for the next queries (consecutiv
 #: match.method: what proposes the candidates (docs/lidar_only.md compares them on real LiDARs)
 MATCH_METHODS = BUILT_IN_METHODS  # of lcpr_core.lcpr.proposers' registry; a plug-in's name is accepted too
 _RIGID_TOLERANCE = 1e-4  # a pose whose rotation block is farther from orthonormal is stored as a position only
+_SUBMAP_SPAN = 64  # map rows scanned per stitched keyframe for a submap's neighbours of one source (peers interleave)
+
+#: why :meth:`LoopDetector.add_peer_keyframe` refused a keyframe (``Result.reason``; nothing is stored)
+PEER_KEYFRAME = "peer keyframe"  # ``Result.reason`` of a peer keyframe taken
+PEER_DESCRIPTOR_SIZE = "peer: wrong descriptor size"
+PEER_NOT_FINITE = "peer: descriptor not finite"
+PEER_WEIGHTS = "peer: other weights"
+PEER_OWN_SESSION = "peer: our own session"
+PEER_NO_SESSION = "peer: no session name"
+PEER_CLOUD_SHAPE = "peer: bad cloud"
+PEER_POSE = "peer: bad pose"
+PEER_STAMP = "peer: bad stamp"
+PEER_REPEATED = "peer: already taken"
+PEER_REFUSALS: tuple[str, ...] = (PEER_DESCRIPTOR_SIZE, PEER_NOT_FINITE, PEER_WEIGHTS, PEER_OWN_SESSION,
+                                  PEER_NO_SESSION, PEER_CLOUD_SHAPE, PEER_POSE, PEER_STAMP, PEER_REPEATED)
+_CLOUD_REACH = 327.67  # m: the int16 centimetre grid clouds are kept on
 
 
 class _SubmapArgs(TypedDict):
@@ -170,6 +189,8 @@ class Candidate:
     match_T_query: np.ndarray | None = None  # 4 x 4: query LiDAR frame in the match's (None: not registered)
     covariance: np.ndarray | None = None  # 6 x 6 (x, y, z, roll, pitch, yaw) of match_T_query
     verification: str = "off"  # "accepted", why not (see verification.REJECT_REASONS), "no cloud" or "off"
+    query_session: str = ""  # the query keyframe's session (DetectorConfig.session, or a peer's)
+    match_session: str = ""  # the match keyframe's session (its map entry's source)
 
 
 @dataclass
@@ -198,7 +219,7 @@ class Result:
         return max(verified, key=lambda c: (c.fitness, -c.distance)) if verified else None
 
 
-REASONS = ("keyframe", "too soon", "not moved", "no lidar", "out of order")
+REASONS = ("keyframe", "too soon", "not moved", "no lidar", "out of order")  # of process(); peers: PEER_*
 
 
 @dataclass
@@ -226,6 +247,8 @@ class LoopDetector:
             config.map, weights_id=self.describer.weights_id)
         self._session_start = len(self.map)  # rows before this index come from earlier sessions
         self._session_stamps: list[float] = []
+        self._session_rows: list[int] = []  # this session's keyframes' map rows (peers' rows may lie between them)
+        self._peers_taken: set[tuple[str, float]] = set()  # (session, stamp) of the peer keyframes stored
         self._last_stamp = -np.inf
         self._kf_stamp: float | None = None  # the newest keyframe decided on (described or about to be)
         self._last_position: np.ndarray | None = None
@@ -273,6 +296,7 @@ class LoopDetector:
         earlier session, matched whatever their stamps, and keyframing and the order check start afresh."""
         self._session_start = len(self.map)
         self._session_stamps = []
+        self._session_rows = []
         self._last_stamp = -np.inf
         self._kf_stamp = None
         self._last_position = None
@@ -322,6 +346,120 @@ class LoopDetector:
             self._store(frame, result, desc)
         return batch.results
 
+    def add_peer_keyframe(self, kf: PeerKeyframe) -> Result:
+        """Take a keyframe another robot's detector sent (:class:`~lcpr_core.lcpr.peers.PeerKeyframe`).
+
+        It is matched against this map (this session's keyframes, a prior map's and other peers', never its own
+        session's; none excluded by time: it is another session), its candidates verified with its cloud exactly
+        as a keyframe of this run would be (its submap stitched from its session's earlier keyframes), and it is
+        stored as an entry whose source is its session, so that this run's later keyframes match it. Each pair of
+        two robots' keyframes is thus found when the later of the two arrives, in whatever order they come.
+
+        A keyframe this detector cannot use is refused, nothing stored: ``Result.reason`` is one of
+        :data:`PEER_REFUSALS` and ``Result.errors`` says which value and what is accepted.
+        """
+        result = Result(stamp=float(kf.stamp) if isinstance(kf.stamp, (int, float)) else math.nan, keyframe_id=None,
+                        reason=PEER_KEYFRAME)
+        refused = self._peer_refusal(kf)
+        if refused is not None:
+            result.reason, why = refused
+            result.errors.append(why)
+            return result
+        desc = np.asarray(kf.descriptor, np.float32).reshape(-1)
+        cloud = None if kf.cloud is None else np.asarray(kf.cloud, np.float32).reshape(-1, 3)
+        world_T_base = None if kf.pose is None else (np.asarray(kf.pose, np.float64)
+                                                     @ invert(self.config.submap.base_T_lidar()))
+        points = cloud if cloud is not None else np.zeros((0, 3), np.float32)
+        tic = time.perf_counter()
+        query = self.proposer.describe(KeyframeInput(desc, points, float(kf.stamp), world_T_base))
+        if self.proposer.stage is not None:
+            result.timings[self.proposer.stage] = time.perf_counter() - tic
+        tic = time.perf_counter()
+        hits = self._search(query, self._request([], other_source=kf.session))
+        result.timings["search"] = time.perf_counter() - tic
+
+        tic = time.perf_counter()
+        (new_id,) = self.map.add(desc, stamps=float(kf.stamp), poses=_map_pose(world_T_base), sources=kf.session)
+        self._peers_taken.add((kf.session, float(kf.stamp)))
+        result.keyframe_id = int(new_id)
+        self.proposer.add(query)
+        result.candidates = self._candidates(int(new_id), float(kf.stamp), hits, degraded=False, session=kf.session)
+        result.timings["add"] = time.perf_counter() - tic
+        self._verifier_for(result)
+        if self.config.verify.enabled:
+            if cloud is None:
+                result.candidates = [dataclasses.replace(c, verification="no cloud") for c in result.candidates]
+            else:
+                self.map.clouds.add(int(new_id), cloud)
+                stored = self.map.clouds.get(int(new_id))  # on the map's grid, as every stored cloud
+                tic = time.perf_counter()
+                result.candidates = self._verify(cloud if stored is None else stored, result.candidates,
+                                                 result.errors)
+                result.timings["verify"] = time.perf_counter() - tic
+        return result
+
+    def _peer_refusal(self, kf: PeerKeyframe) -> tuple[str, str] | None:
+        """(reason, why) when this detector cannot take ``kf``; None when it can."""
+        if not isinstance(kf.session, str) or not kf.session:
+            return PEER_NO_SESSION, f"peer keyframe session {kf.session!r}; accepted: a non-empty name"
+        where = f"peer keyframe of session {kf.session!r} at {kf.stamp!r}"
+        if kf.session == self.config.session:
+            return PEER_OWN_SESSION, (f"{where}: the session is this detector's own (session={self.config.session!r}); "
+                                      "accepted: another robot's session (give each robot its own session name)")
+        if isinstance(kf.stamp, bool) or not isinstance(kf.stamp, (int, float)) or not math.isfinite(kf.stamp):
+            return PEER_STAMP, f"{where}: the stamp is not a finite time; accepted: seconds"
+        if (kf.session, float(kf.stamp)) in self._peers_taken:
+            return PEER_REPEATED, f"{where}: a keyframe of that session and stamp is stored already; accepted: new ones"
+        desc = np.asarray(kf.descriptor)
+        if desc.dtype.kind != "f" or desc.shape != (self.map.dim,):
+            return PEER_DESCRIPTOR_SIZE, (f"{where}: descriptor of shape {desc.shape} dtype {desc.dtype}; accepted: "
+                                          f"({self.map.dim},) floats, the size of this map's descriptors")
+        if not np.isfinite(desc.astype(np.float32)).all():
+            return PEER_NOT_FINITE, f"{where}: the descriptor holds NaN or inf (as float32); accepted: finite values"
+        ours = self.describer.weights_id
+        if kf.weights_id != ours:
+            return PEER_WEIGHTS, (f"{where}: made by LCPR weights {kf.weights_id!r}; accepted: this detector's "
+                                  f"{ours!r} (other weights' descriptors cannot be compared)")
+        if kf.pose is not None:
+            pose = np.asarray(kf.pose)
+            kept = _map_pose(pose) if pose.shape == (4, 4) and pose.dtype.kind in "fi" else None
+            if kept is None or kept.shape != (1, 4, 4):
+                return PEER_POSE, (f"{where}: pose of shape {pose.shape}; accepted: None or a finite rigid 4 x 4 "
+                                   "world_T_lidar")
+        if kf.cloud is not None:
+            cloud = np.asarray(kf.cloud)
+            if cloud.ndim != 2 or cloud.shape[1] != 3 or cloud.dtype.kind != "f" or not np.isfinite(cloud).all() \
+                    or (len(cloud) and float(np.abs(cloud).max()) > _CLOUD_REACH):
+                return PEER_CLOUD_SHAPE, (f"{where}: cloud of shape {cloud.shape} dtype {cloud.dtype}; accepted: "
+                                          f"None or M x 3 finite floats within {_CLOUD_REACH} m (a compact cloud)")
+        return None
+
+    def _candidates(self, new_id: int, stamp: float, hits: Sequence[Any], *, degraded: bool,
+                    session: str) -> list[Candidate]:
+        """The new keyframe's hits as candidates, best first (unverified yet)."""
+        return [Candidate(new_id, h.id, stamp, h.stamp, h.distance, rank, h.pose, degraded, query_session=session,
+                          match_session=h.source) for rank, h in enumerate(hits)]
+
+    def _verifier_for(self, result: Result) -> None:
+        """Mark whether ``result``'s candidates are verified, and follow verify settings changed at run time."""
+        result.verification = self.config.verify.enabled
+        if self.verifier.config is not self.config.verify:
+            self.verifier = GeometricVerifier(self.config.verify)
+            self._prepared.clear()
+
+    def peer_keyframe(self, keyframe_id: int) -> PeerKeyframe:
+        """One of this run's keyframes as its peers take it (what ``~/keyframes`` publishes): its descriptor,
+        world_T_lidar (the odometry pose through ``submap.lidar_xyz`` / ``lidar_rpy``; None without a full pose)
+        and compact cloud (None with verification off)."""
+        row = self.map.row_of(keyframe_id)
+        if row is None:
+            raise InvalidValueError(f"keyframe {keyframe_id} is not in the map ({len(self.map)} keyframes)")
+        world_T_base = self.map.pose_matrices([row])[0]
+        pose = world_T_base @ self.config.submap.base_T_lidar() if np.isfinite(world_T_base).all() else None
+        return PeerKeyframe(stamp=float(self.map.stamps[row]), session=self.map.source_at(row),
+                            descriptor=self.map.descriptor_at(row), pose=pose,
+                            weights_id=self.describer.weights_id, cloud=self.map.clouds.get(int(keyframe_id)))
+
     def _describe(self, keyframes: list[tuple[Frame, Result]]) -> np.ndarray:
         """K x D descriptors of the keyframes, one network call; cameras that could not be used are marked."""
         tic = time.perf_counter()
@@ -349,23 +487,20 @@ class LoopDetector:
         if self.proposer.stage is not None:
             result.timings[self.proposer.stage] = time.perf_counter() - tic
         tic = time.perf_counter()
-        hits = self._search(query, frame.stamp)
+        hits = self._search(query, self._request(self._hidden_rows(frame.stamp)))
         result.timings["search"] = time.perf_counter() - tic
 
         tic = time.perf_counter()
         (new_id,) = self.map.add(desc, stamps=frame.stamp, poses=_map_pose(frame.pose), sources=self.config.session)
+        self._session_rows.append(len(self.map) - 1)
+        self._session_stamps.append(frame.stamp)
         result.keyframe_id = int(new_id)
         self.proposer.add(query)
         degraded = bool(result.missing_cameras)
-        result.candidates = [
-            Candidate(int(new_id), h.id, frame.stamp, h.stamp, h.distance, rank, h.pose, degraded)
-            for rank, h in enumerate(hits)
-        ]
+        result.candidates = self._candidates(int(new_id), frame.stamp, hits, degraded=degraded,
+                                             session=self.config.session)
         result.timings["add"] = time.perf_counter() - tic
-        result.verification = self.config.verify.enabled
-        if self.verifier.config is not self.config.verify:  # settings changed at run time
-            self.verifier = GeometricVerifier(self.config.verify)
-            self._prepared.clear()
+        self._verifier_for(result)
         walls = points  # what the up is measured on
         if self.config.verify.enabled:
             tic = time.perf_counter()
@@ -381,7 +516,6 @@ class LoopDetector:
             found = estimate_up(walls, config=self.config.up)
             result.up = None if found is None else found.up
             result.timings["up"] = time.perf_counter() - tic
-        self._session_stamps.append(frame.stamp)
 
     def _verify(self, compact: np.ndarray, candidates: list[Candidate], errors: list[str]) -> list[Candidate]:
         """Each candidate with the verdict of registering the query cloud against the match's.
@@ -396,6 +530,7 @@ class LoopDetector:
             self._prepared.clear()
             self._close_processes()
         query_id = candidates[0].query_id
+        query_row = self.map.row_of(query_id)
         query_sub = self._submap(query_id, before_only=True)
         first = None if query_sub is None else query_sub.rows[0]  # the query's own keyframes start here
         query = CloudRef((self._token, query_id, "submap"), lambda: compact if query_sub is None else query_sub.xyz)
@@ -404,8 +539,9 @@ class LoopDetector:
         out = list(candidates)
         for k, c in enumerate(candidates):
             row = self.map.row_of(c.match_id)
-            stitched = first is not None and row is not None and row >= first  # a keyframe the query stitched:
-            match = self._match_cloud(c.match_id, end=first)  # that pair is verified scan against scan
+            own = row is not None and query_row is not None and self._same_run(row, query_row)  # query's session
+            stitched = own and first is not None and row is not None and row >= first  # a keyframe the query
+            match = self._match_cloud(c.match_id, end=first if own else None)  # stitched: scan against scan
             if match is None:
                 out[k] = dataclasses.replace(c, verification="no cloud")
             else:
@@ -467,8 +603,8 @@ class LoopDetector:
         window = self._submap_window(keyframe_id, before_only=False, end=end)
         if window is None:
             return None
-        lo, rows = window[0], window[1]
-        key = (self._token, int(keyframe_id), *(int(i) for i in self.map.ids[[lo + r for r in rows]]))
+        at, rows = window[0], window[1]
+        key = (self._token, int(keyframe_id), *(int(i) for i in self.map.ids[at[list(rows)]]))
 
         def load() -> np.ndarray:
             sub = self._submap(keyframe_id, before_only=False, end=end, window=window)
@@ -478,46 +614,56 @@ class LoopDetector:
         return CloudRef(key, load)
 
     def _submap(self, keyframe_id: int, *, before_only: bool, end: int | None = None,
-                window: tuple[int, tuple[int, ...], _SubmapArgs] | None = None) -> Submap | None:
+                window: tuple[np.ndarray, tuple[int, ...], _SubmapArgs] | None = None) -> Submap | None:
         """A keyframe's cloud with its neighbours of one session stitched in (rows: map rows), its cloud alone when
         submaps are off or do not apply; None without a cloud. ``end``: no row from it on. ``window``:
         :meth:`_submap_window`'s answer when the caller has it."""
         window = window if window is not None else self._submap_window(keyframe_id, before_only=before_only, end=end)
         if window is None:
             return None
-        lo, rows, args = window
+        at, rows, args = window
         sub = build_submap(args["centre"], world_T_base=args["world_T_base"], stamps=args["stamps"],
                            cloud=args["cloud"], config=self.config.submap, before_only=before_only, rows=rows)
-        return None if sub is None else Submap(sub.xyz, tuple(lo + r for r in sub.rows))
+        return None if sub is None else Submap(sub.xyz, tuple(int(at[r]) for r in sub.rows))
 
     def _submap_window(self, keyframe_id: int, *, before_only: bool, end: int | None
-                       ) -> tuple[int, tuple[int, ...], _SubmapArgs] | None:
-        """(first map row of the window, the submap's rows within it, what build_submap reads) of a keyframe's
-        submap, without stitching; None without a cloud."""
+                       ) -> tuple[np.ndarray, tuple[int, ...], _SubmapArgs] | None:
+        """(the window's map rows, ascending; the submap's rows within the window; what build_submap reads) of a
+        keyframe's submap, without stitching; None without a cloud. The window holds the keyframe's session
+        only (its source, within this run or the earlier ones): peers' keyframes between them are skipped."""
         cfg = self.config.submap
         row = self.map.row_of(keyframe_id)
         if row is None or self.map.clouds.get(keyframe_id) is None:
             return None
         if cfg.mode == "off" or (end is not None and end <= row):
-            lo, hi = row, row + 1
+            window = np.array([row], np.int64)
         else:
             # one session: this run's rows or the earlier ones, one source, within reach of max_keyframes
             lo, hi = (self._session_start, len(self.map)) if row >= self._session_start else (0, self._session_start)
             reach = cfg.max_keyframes - 1
-            lo, hi = max(lo, row - reach), min(hi, row + 1 if before_only else row + reach + 1)
+            span = _SUBMAP_SPAN * (reach + 1)
+            lo, hi = max(lo, row - span), min(hi, row + 1 if before_only else row + span + 1)
             if end is not None:
                 hi = min(hi, end)
-            codes, at = self.map.source_codes[lo:hi], row - lo
-            other = np.flatnonzero(codes != codes[at])  # rows of another source end the run
-            lo, hi = lo + int(other[other < at].max(initial=-1)) + 1, lo + int(other[other > at].min(initial=hi - lo))
-        ids = self.map.ids[lo:hi]
-        args: _SubmapArgs = {"centre": row - lo, "world_T_base": self.map.pose_matrices(slice(lo, hi)),
-                             "stamps": self.map.stamps[lo:hi], "cloud": lambda r: self.map.clouds.get(int(ids[r]))}
-        if cfg.mode == "off" or (end is not None and end <= row):
-            return lo, (0,), args
+            codes = self.map.source_codes[lo:hi]
+            same = lo + np.flatnonzero(codes == codes[row - lo])
+            at = int(np.searchsorted(same, row))
+            window = same[max(0, at - reach): at + 1 if before_only else at + reach + 1]
+        ids = self.map.ids[window]
+        args: _SubmapArgs = {"centre": int(np.searchsorted(window, row)),
+                             "world_T_base": self.map.pose_matrices(window), "stamps": self.map.stamps[window],
+                             "cloud": lambda r: self.map.clouds.get(int(ids[r]))}
+        if len(window) == 1:
+            return window, (0,), args
         rows = submap_rows(args["centre"], world_T_base=args["world_T_base"], stamps=args["stamps"],
                            cloud=args["cloud"], config=cfg, before_only=before_only)
-        return None if rows is None else (lo, rows, args)
+        return None if rows is None else (window, rows, args)
+
+    def _same_run(self, a: int, b: int) -> bool:
+        """Whether map rows ``a`` and ``b`` are keyframes of one session: one source, both of this run or both
+        of the earlier ones."""
+        codes = self.map.source_codes
+        return bool(codes[a] == codes[b]) and (a >= self._session_start) == (b >= self._session_start)
 
     def _keyframe_reason(self, frame: Frame) -> str:
         if frame.stamp <= self._last_stamp:
@@ -530,14 +676,46 @@ class LoopDetector:
                                last_position=self._last_position, min_interval=self.config.keyframe.min_interval,
                                min_distance=self.config.keyframe.min_distance)
 
-    def _search(self, query: object, stamp: float) -> list[Match]:
-        """The proposer's top-k map entries for ``query``, this session's recent keyframes left out (the same
-        exclusion rules for every ``match.method``: the excluded keyframes are the map's newest rows)."""
+    def _hidden_rows(self, stamp: float) -> list[int]:
+        """Map rows of this session's keyframes the exclusion rules hide from a query at ``stamp``."""
         excluded = self._excluded_count(stamp)
-        eligible = len(self.map) - excluded
-        if eligible <= 0:
+        return self._session_rows[len(self._session_rows) - excluded:] if excluded else []
+
+    def _request(self, hidden: list[int], *, other_source: str | None = None) -> SearchRequest | None:
+        """The search over the map's rows but ``hidden`` (and, for a peer's keyframe, its own session's rows:
+        ``other_source``); None when no row is left. Without peers the hidden rows are the map's newest and
+        ``eligible`` alone says which rows are left, as it always did."""
+        n = len(self.map)
+        cfg = self.config.match
+        if other_source is None and (not hidden or hidden[0] == n - len(hidden)):  # the newest rows only
+            eligible = n - len(hidden)
+            return SearchRequest(eligible, cfg, self.max_distance) if eligible > 0 else None
+        allowed = np.ones(n, np.bool_)
+        allowed[np.asarray(hidden, np.int64)] = False
+        code = None if other_source is None else self.map.source_code_of(other_source)
+        if code is not None:
+            allowed &= self.map.source_codes != code
+        left = np.flatnonzero(allowed)
+        if not len(left):
+            return None
+        eligible = int(left[-1]) + 1
+        mask = allowed[:eligible]
+        return SearchRequest(eligible, cfg, self.max_distance, allowed=None if mask.all() else mask)
+
+    def _search(self, query: object, request: SearchRequest | None) -> list[Match]:
+        """The proposer's top-k map entries for ``query`` under ``request`` (the same exclusion rules for every
+        ``match.method``); a hit outside ``request.allowed`` (a method that does not read it) is dropped."""
+        if request is None:
             return []
-        return self.proposer.search(query, SearchRequest(eligible, self.config.match, self.max_distance))
+        hits = self.proposer.search(query, request)
+        if request.allowed is None:
+            return hits
+        allowed = request.allowed
+
+        def kept(h: Match) -> bool:
+            row = self.map.row_of(h.id)
+            return row is not None and row < request.eligible and bool(allowed[row])
+        return [h for h in hits if kept(h)]
 
     def _excluded_count(self, stamp: float) -> int:
         """How many of this session's newest keyframes the exclusion rules hide from ``stamp``."""

@@ -29,3 +29,29 @@ def test_a_candidate_row_reads_back_to_its_relative_pose_and_covariance() -> Non
     assert np.allclose(pose, T) and np.allclose(covariance, cov)
     assert rows[0]["verified"] == 1.0 and rows[0]["fitness"] == pytest.approx(0.6)
     assert row_pose(rows[1]) is None and row_covariance(rows[1]) is None and rows[1]["verified"] == 0.0
+
+
+def test_candidate_rows_name_their_sessions_through_the_latched_session_table() -> None:
+    from lcpr_ros.outputs import SessionTable, parse_sessions, row_sessions, sessions_msg
+
+    table = SessionTable()
+    own = Candidate(7, 3, 40.0, 1.0, 0.3, 0, None, False, query_session="robot1", match_session="robot1")
+    peer = Candidate(7, 9, 40.0, 5.0, 0.4, 1, None, False, query_session="robot1", match_session="robot2")
+    rows = parse_candidates(candidates_msg(Result(40.0, 7, "keyframe", [own, peer]), table))
+    assert list(CANDIDATE_COLUMNS[-2:]) == ["query_session", "match_session"]  # appended at the end
+    names = parse_sessions(sessions_msg(table.names))
+    assert names == ["robot1", "robot2"]
+    assert [row_sessions(r, names) for r in rows] == [("robot1", "robot1"), ("robot1", "robot2")]
+    assert row_sessions(rows[1], names[:1]) == ("robot1", None)  # a code the reader's table lacks yet
+    bare = parse_candidates(candidates_msg(Result(40.0, 7, "keyframe", [own])))  # no table: NaN codes
+    assert row_sessions(bare[0], names) == (None, None)
+
+
+def test_a_session_table_that_is_not_a_json_list_of_names_is_refused() -> None:
+    from std_msgs.msg import String
+
+    from lcpr_ros.outputs import parse_sessions
+
+    for bad in ("{", '{"a": 1}', "[1, 2]"):
+        with pytest.raises(ValueError, match="sessions"):
+            parse_sessions(String(data=bad))

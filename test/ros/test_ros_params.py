@@ -91,7 +91,8 @@ def test_the_params_file_lists_every_parameter_with_its_default() -> None:
     (node_key,) = data
     assert node_key in ("/**", "lcpr", "/lcpr")
     params = flatten(data[node_key]["ros__parameters"])
-    expected = {leaf.name: (list(leaf.default) if leaf.array else leaf.default) for leaf in all_leaves()}
+    expected = {leaf.name: (list(leaf.default) if leaf.array else leaf.default) for leaf in all_leaves()
+                if not (leaf.array and not leaf.default)}  # an empty list is left out: rcl's parser refuses it
     assert params == expected
     # and the generator writes the same content (no duplicate group keys)
     assert flatten(yaml.safe_load(to_yaml(all_leaves()))["/**"]["ros__parameters"]) == expected

@@ -68,11 +68,15 @@ class KeyframeInput:
 @dataclass(frozen=True)
 class SearchRequest:
     """One query's search: only the map's first ``eligible`` rows may be proposed (the rows after them are this
-    session's newest keyframes, hidden by ``match.exclude_recent_s`` / ``match.exclude_recent_count``)."""
+    session's newest keyframes, hidden by ``match.exclude_recent_s`` / ``match.exclude_recent_count``), and of
+    those only the rows where ``allowed`` holds when it is given: with peer robots' keyframes in the map, this
+    session's hidden keyframes are not all at its end, and a peer's keyframe is not matched with its own
+    session's. The detector drops any hit outside ``allowed`` that a method proposes all the same."""
 
     eligible: int  # >= 1: the detector proposes nothing when no row is eligible
     match: MatchSettings  # the settings now
     max_distance: float  # descriptor L2 bound as used (match.max_distance with AUTO_DISTANCE resolved)
+    allowed: np.ndarray | None = None  # (eligible,) bool: the rows that may be proposed; None = all of them
 
 
 class CandidateProposer(Protocol[R]):

@@ -29,6 +29,9 @@ class DescriptorProposer:
         """Top-k entries within max_distance among the eligible rows. The excluded rows are the map's newest,
         so the index is asked for that many more hits, which are then dropped: exact however many are excluded."""
         top_k = request.match.top_k
+        if request.allowed is not None:  # the rows allowed, searched as such (FAISS's selector, or exactly)
+            return cast(list[Match], self.map.search(query, k=top_k, max_distance=request.max_distance,
+                                                     allowed=request.allowed))
         excluded = len(self.map) - request.eligible
         # one (D,) descriptor: search returns one list of matches
         hits = cast(list[Match], self.map.search(query, k=min(top_k + excluded, len(self.map)),

@@ -35,7 +35,8 @@ class ScanContextProposer:
 
     def search(self, query: np.ndarray, request: SearchRequest) -> list[Match]:
         match = request.match
-        found = self.rows.search(query, rows=request.eligible, k=match.top_k, max_distance=match.sc_max_distance)
+        found = self.rows.search(query, rows=request.eligible, k=match.top_k, max_distance=match.sc_max_distance,
+                                 allowed=request.allowed)
         if not found:
             return []
         sources = self.map.sources
