@@ -16,6 +16,7 @@ README = REPO / "README.md"
 PARAMETER_PAGES = {
     "lcpr_ros.params": "docs/reference/lcpr_node_parameters.md",
     "vseq2pc_ros.params": "docs/reference/vseq2pc_node_parameters.md",
+    "backend_ros.config": "docs/reference/lcpr_backend_parameters.md",
 }
 INLINE_LINK = re.compile(r"!?\[(?:[^\[\]]|\[[^\]]*\])*\]\(\s*<?([^)\s>]+)>?(?:\s+\"[^\"]*\")?\s*\)")
 REFERENCE_LINK = re.compile(r"^\s*\[[^\]]+\]:\s*<?(\S+?)>?(?:\s+\"[^\"]*\")?\s*$", re.MULTILINE)

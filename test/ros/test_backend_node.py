@@ -89,7 +89,7 @@ def candidate_row(query_stamp: float, match_stamp: float, match_T_query: np.ndar
     values.update(zip(("tx", "ty", "tz", "qx", "qy", "qz", "qw"), [*match_T_query[:3, 3], *q], strict=True))
     cov = np.full(36, math.nan) if covariance is None else covariance.reshape(36)
     values.update({f"cov_{i}": float(v) for i, v in enumerate(cov)})
-    return [float(values[name]) for name in CANDIDATE_COLUMNS]
+    return [float(values.get(name, math.nan)) for name in CANDIDATE_COLUMNS]  # sessions: none named
 
 
 def published(ros: Ros, stamps: np.ndarray, poses: np.ndarray) -> None:
@@ -143,7 +143,9 @@ def test_odometry_and_one_verified_candidate_row_come_back_as_a_corrected_path(r
     step[0, 3] += 0.5
     ros.odom.publish(pose_to_odometry(step, stamp=float(stamps[-1] + DT), frame_id="odom", msg_type=Odometry))
     assert wait_until(lambda: len(ros.corrected) > before, 10)
-    np.testing.assert_allclose(odometry_to_pose(ros.corrected[-1]), ros.node.backend.map_T_odom() @ step, atol=1e-6)
+    correction = ros.node.backend.map_T_odom(ros.node.settings.session)
+    assert correction is not None
+    np.testing.assert_allclose(odometry_to_pose(ros.corrected[-1]), correction @ step, atol=1e-6)
 
     def diagnosed() -> bool:
         return any(kv.key == "loops accepted" and kv.value == "1" for d in ros.diagnostics for s in d.status
@@ -163,7 +165,8 @@ def test_the_detectors_ups_are_taken_and_a_bad_one_is_counted(ros: Ros) -> None:
         up_pub.publish(up_msg(Result(stamp=float(stamps[i]), keyframe_id=i, reason="keyframe", up=up), "lidar"))
     sent = len(range(0, len(truth), 20))
     assert wait_until(lambda: ros.node._stats.ups == sent, 20), ros.node._stats
-    np.testing.assert_allclose(ros.node.backend.trajectory()[1][:, :3, 3], truth[:, :3, 3], atol=0.02)  # true ups
+    _, corrected = ros.node.backend.trajectory(ros.node.settings.session)
+    np.testing.assert_allclose(corrected[:, :3, 3], truth[:, :3, 3], atol=0.02)  # true ups
     bad = Vector3Stamped()
     bad.header.stamp.sec = int(stamps[-1])
     up_pub.publish(bad)  # a zero vector
@@ -246,3 +249,29 @@ def test_the_launch_file_starts_odometry_detector_and_back_end_with_their_params
         assert {p.get("name") for p in params if p.get("name")} <= {leaf.name for leaf in known[exe]}
     assert (repo / "config" / "lcpr_backend.yaml").read_text() == yaml_text()
     assert (repo / "config" / "lcpr_kiss_icp.yaml").read_text() == kiss_icp_node.yaml_text()
+
+
+def test_the_prior_map_launch_file_gives_both_nodes_one_session_name_and_the_back_end_the_prior() -> None:
+    import xml.etree.ElementTree as ET
+
+    from backend_ros.config import all_leaves
+    from lcpr_ros.params import all_leaves as detector_leaves
+
+    repo = Path(__file__).resolve().parents[2]
+    root = ET.parse(repo / "launch" / "lcpr_prior_map.launch.xml").getroot()
+    required = {str(a.get("name")) for a in root.findall("arg") if a.get("default") is None}
+    assert required == {"map_path", "prior_graph", "session"}
+    nodes = {str(n.get("exec")): n for n in root.findall("node")}
+    assert {e: n.get("name") for e, n in nodes.items()} == {"lcpr_node": "lcpr", "lcpr_backend": "lcpr_backend"}
+    known = {"lcpr_node": detector_leaves(), "lcpr_backend": all_leaves()}
+    values = {}
+    for exe, node in nodes.items():
+        params = node.findall("param")
+        (params_file,) = [p.get("from") for p in params if p.get("from")]
+        assert (repo / "config" / Path(str(params_file)).name).is_file()
+        values[exe] = {str(p.get("name")): p.get("value") for p in params if p.get("name")}
+        assert set(values[exe]) <= {leaf.name for leaf in known[exe]}
+    assert values["lcpr_node"]["session"] == values["lcpr_backend"]["session"] == "$(var session)"
+    assert values["lcpr_node"]["map.path"] == "$(var map_path)"
+    assert values["lcpr_backend"]["prior_graph"] == "$(var prior_graph)"
+    assert values["lcpr_backend"]["sessions_topic"] == "/lcpr/sessions"  # the detector (node name lcpr)'s ~/sessions
