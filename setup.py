@@ -86,6 +86,8 @@ setup(
             "lcpr_kiss_icp = backend_ros.kiss_icp_node:main",
             "lcpr_replay = lcpr_ros.replay:main",
             "lcpr_eval = lcpr_ros.evaluate:main",
+            "lcpr_relocalize = lcpr_offline.relocalize:main",
+            "lcpr_fleet = lcpr_offline.fleet:main",
             "vseq2pc_node = vseq2pc_ros.node:main",
             "lcpr_train = lcpr_offline.lcpr_train:main",
             "vseq2pc_cache = lcpr_offline.vseq2pc_cache:main",

@@ -19,6 +19,9 @@ LiDAR (rendered every metre along the same path in the same world, :mod:`lcpr_of
 the bag's 5 m keyframes are too far apart for it), the node's verified candidates as loops (and its ``~/up``), and the
 online back end (:mod:`lcpr_core.backend.replay`): ATE RMSE before and after against the drive's ground
 truth, and ``backend.png``. The default (``drift``) prints only the seeded-drift pose graph above.
+
+``lcpr_demo --fleet`` runs the fleet demo instead: two robots, two detectors and a back end merging both over
+DDS (:mod:`lcpr_ros.fleet_demo`; ``lcpr_demo --fleet --help``).
 """
 from __future__ import annotations
 
@@ -38,7 +41,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from lcpr_common.progress import progress_iter
 from lcpr_core.atomic import write_bytes_atomic
 from lcpr_core.errors import LcprError
 from lcpr_core.evaluation import recall_at_full_precision
@@ -112,7 +114,7 @@ def demo_drive(args: argparse.Namespace) -> SyntheticDrive:
 
 
 def make_drive(args: argparse.Namespace) -> tuple[Path, Truth]:
-    from citysim import write_bag
+    from citysim import write_bag_once
 
     width, height = (int(v) for v in args.image_size.lower().split("x"))
     drive = demo_drive(args)
@@ -122,12 +124,8 @@ def make_drive(args: argparse.Namespace) -> tuple[Path, Truth]:
     has[pairs[:, 0]] = True
     poses = np.stack([drive.pose(i) for i in range(len(stamps))])
     bag = args.out / f"drive_seed{args.seed}_{args.frames}f_{width}x{height}"
-    if bag.exists():
-        print(f"[1/4] reusing the drive {bag}")
-    else:
-        print(f"[1/4] rendering a {len(stamps)}-keyframe drive of the synthetic city into {bag}")
-        write_bag(drive, bag, workers=2,
-                  wrap=partial(progress_iter, total=len(stamps), desc="rendering", unit="frame"))
+    print(f"[1/4] {'reusing the drive' if bag.exists() else 'rendering a drive of the synthetic city into'} {bag}")
+    write_bag_once(drive, bag, desc="rendering")
     return bag, Truth(stamps, positions, has, poses, np.asarray(drive.rig.lidar.base_T_lidar, np.float64))
 
 
@@ -361,7 +359,12 @@ def _f(value: float | None) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run(parse_args(argv))
+    args = sys.argv[1:] if argv is None else list(argv)
+    if "--fleet" in args:  # two robots and a back end: a demo of its own (lcpr_demo --fleet --help)
+        from .fleet_demo import main as fleet_main
+
+        return fleet_main([a for a in args if a != "--fleet"])
+    return run(parse_args(args))
 
 
 if __name__ == "__main__":
