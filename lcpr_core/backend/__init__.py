@@ -11,7 +11,7 @@ A SLAM consumer of the detectors, not a part of them: it imports only the core's
 errors, the pose-graph and loop-report conversions), and neither the detectors nor the evaluation import it
 (the import contracts in setup.cfg hold both). Its rooms: the graph (:mod:`.graph`), its options
 (:mod:`.config`), its file (:mod:`.graph_file`), the consistency check (:mod:`.consistency`), its sessions
-(:mod:`.session`) and how a new one is placed (:mod:`.anchoring`), a recorded
+(:mod:`.session`) and how a new one is placed (:mod:`.placing`, :mod:`.anchoring`), a recorded
 drive replayed through it (:mod:`.replay`) and KISS-ICP odometry to feed it (:mod:`.lidar_odometry`).
 How it is built and what it measures: docs/backend.md. GTSAM is an optional extra (``pip install gtsam``).
 """

@@ -27,11 +27,11 @@ from ..geometry import interpolate_poses, invert, nearest_rotation, skew, so3_ex
 from ..growable import GrowableArray
 from ..loop_report import covariance_lidar_to_body
 from ..posegraph import check_covariances, check_poses, lidar_to_body, to_gtsam_covariance
-from .anchoring import implied_transform, invert_measurement, max_clique, pair_statistic
 from .config import BackendConfig, is_real, rotation_angle, show
 from .consistency import mahalanobis_squared, path_covariances, to_world
 from .graph_file import SavedGraph, SavedSession, read_graph_file, write_graph_file
-from .session import DEFAULT_SESSION, LOOP_UNKNOWN, Session, Waiting
+from .placing import INTER_ACCEPTED, INTER_UNPLACED, INTER_WAITING, SessionPlacing
+from .session import DEFAULT_SESSION, LOOP_UNKNOWN, Loop, Session
 
 __all__ = ["DEFAULT_SESSION", "BackendStats", "PoseGraphBackend", "compose_covariance"]
 
@@ -51,18 +51,6 @@ LOOP_SESSION = "loop session unknown"
 PRIOR_MISMATCH = "prior of another map"
 UP_VECTOR = "up bad vector"
 
-# what became of inter-session loops (BackendStats.inter_session)
-INTER_ACCEPTED = "accepted"  # in the graph
-INTER_WAITING = "waiting"  # kept as evidence until their session is placed
-INTER_CONTRADICTING = "contradicting the anchor"  # refused against their session's anchor (kept a while)
-INTER_UNPLACED = "between unplaced sessions"  # neither end placed yet: kept until one is
-INTER_DROPPED = "dropped"  # the oldest waiting loop once max_waiting is reached
-INTER_WITHDRAWN = "withdrawn"  # in the graph once, taken out when their session's anchor moved
-ANCHORS = "anchors"  # a session placed in the map frame
-REANCHORS = "re-anchors"  # an anchor moved by a larger agreeing set of loops
-UNANCHORS = "un-anchors"  # a session that lost every loop to the map with another session's anchor
-
-
 @dataclass(frozen=True)
 class BackendStats:
     """Counts and timings of a back end (what /diagnostics reports)."""
@@ -81,19 +69,7 @@ class BackendStats:
 
 
 # ============================================================================ the back end
-@dataclass
-class _Loop:
-    parent: int  # graph key of the match's node
-    child: int  # graph key of the query's node
-    measured: np.ndarray  # (4, 4) parent_T_child
-    covariance: np.ndarray  # (6, 6) ROS order, in the parent node's frame
-    stamps: tuple[float, float]  # (query, match) as given
-    chi2: float
-    world_cov: np.ndarray  # (6, 6) GTSAM order, moved into the map frame (path search)
-    sessions: tuple[str, str] = (DEFAULT_SESSION, DEFAULT_SESSION)  # (query, match)
-
-
-class PoseGraphBackend:
+class PoseGraphBackend(SessionPlacing):
     """An iSAM2 pose graph fed online with odometry and loop closures, of one session or several
     (docs/backend.md: how it is built; docs/sessions.md: sessions)."""
 
@@ -109,10 +85,10 @@ class PoseGraphBackend:
         self._sessions: dict[str, Session] = {}
         self._key_session: list[Session] = []  # session of each graph key
         self._key_local: list[int] = []  # node index within it
-        self._loops: list[_Loop] = []
+        self._loops: list[Loop] = []
         self._loop_ends = GrowableArray(np.int64, (2,))  # (parent, child) keys of each accepted loop
         self._loop_world_cov = GrowableArray(np.float64, (6, 6))  # their world_cov, stacked for the path search
-        self._unplaced: list[tuple[_Loop, np.ndarray]] = []  # inter-session loops with neither end placed (+ cov)
+        self._unplaced: list[tuple[Loop, np.ndarray]] = []  # inter-session loops with neither end placed (+ cov)
         self._rejected = 0
         self._redundant = 0
         self._refused: Counter[str] = Counter()
@@ -259,7 +235,7 @@ class PoseGraphBackend:
         measured[:3, :3] = nearest_rotation(measured[:3, :3])
         measured_cov = compose_covariance(body_cov, before, body, after)
         gtsam_cov = to_gtsam_covariance(measured_cov, measured[:3, :3])
-        loop = _Loop(parent, child, measured, measured_cov, (q, m), math.nan, np.zeros((6, 6)), (qs.name, ms.name))
+        loop = Loop(parent, child, measured, measured_cov, (q, m), math.nan, np.zeros((6, 6)), (qs.name, ms.name))
         if qs is not ms and not (qs.anchored and ms.anchored):
             return self._wait(loop, gtsam_cov)
         chi2 = self._chi2(parent, child, measured, gtsam_cov)
@@ -556,7 +532,7 @@ class PoseGraphBackend:
         gt = self._gtsam
         return gt.PriorFactorPose3(key, _pose3(gt, pose), gt.noiseModel.Isotropic.Sigma(6, self.config.prior_sigma))
 
-    def _insert(self, loop: _Loop, gtsam_cov: np.ndarray) -> None:
+    def _insert(self, loop: Loop, gtsam_cov: np.ndarray) -> None:
         """Add an accepted loop's factor and solve (a few updates while its node still moves)."""
         gt = self._gtsam
         graph = gt.NonlinearFactorGraph()
@@ -668,7 +644,7 @@ class PoseGraphBackend:
     def _session_estimates(self, s: Session) -> np.ndarray:
         return self._node_estimates()[s.keys] if s.keys else np.zeros((0, 4, 4))
 
-    def _remember(self, loop: _Loop) -> None:
+    def _remember(self, loop: Loop) -> None:
         """Keep an accepted loop (and its ends and world covariance for the consistency check's path search)."""
         self._loops.append(loop)
         self._loop_ends.extend(np.array([[loop.parent, loop.child]], np.int64))
@@ -724,162 +700,6 @@ class PoseGraphBackend:
         return path_covariances(int(position[a]), position[targets], cumulative=cumulative, loop_ends=ends,
                                 loop_world_cov=world, poses=poses, breaks=counts[:-1])
 
-    # -- internals: placing sessions ---------------------------------------------------------
-    def _waiting_of(self, loop: _Loop, gtsam_cov: np.ndarray, *, free_is_child: bool) -> Waiting:
-        if free_is_child:
-            return Waiting(loop, fixed=loop.parent, free=loop.child, measured=loop.measured, cov=gtsam_cov)
-        z, cov = invert_measurement(loop.measured, gtsam_cov)
-        return Waiting(loop, fixed=loop.child, free=loop.parent, measured=z, cov=cov)
-
-    def _wait(self, loop: _Loop, gtsam_cov: np.ndarray) -> bool:
-        """An inter-session loop with an end in a session not yet placed: evidence for placing it."""
-        qs, ms = self._key_session[loop.child], self._key_session[loop.parent]
-        if not qs.anchored and not ms.anchored:
-            self._unplaced.append((loop, gtsam_cov))
-            excess = len(self._unplaced) - self.config.sessions.max_waiting
-            if excess > 0:
-                del self._unplaced[:excess]
-                self._inter[INTER_DROPPED] += excess
-            return False
-        free = ms if qs.anchored else qs
-        self._push(free, free.waiting, free.waiting_agree, self._waiting_of(loop, gtsam_cov,
-                                                                             free_is_child=free is qs), "waiting")
-        return self._try_anchor(free, contradicting=False)
-
-    def _contradict(self, loop: _Loop, gtsam_cov: np.ndarray) -> None:
-        """An inter-session loop the consistency check refused: evidence against its session's anchor."""
-        qs, ms = self._key_session[loop.child], self._key_session[loop.parent]
-        free = ms if qs.root or (not ms.root and ms.code > qs.code) else qs
-        self._inter[INTER_CONTRADICTING] += 1
-        self._push(free, free.contradicting, free.contradicting_agree,
-                   self._waiting_of(loop, gtsam_cov, free_is_child=free is qs), "contradicting")
-        self._try_anchor(free, contradicting=True)
-
-    def _push(self, s: Session, pool: list[Waiting], agree: list[list[bool]], item: Waiting, what: str) -> None:
-        """Add ``item`` to one of ``s``'s pools with its agreement with every member (the oldest dropped first)."""
-        if len(pool) >= self.config.sessions.max_waiting:
-            pool.pop(0)
-            agree.pop(0)
-            for row in agree:
-                row.pop(0)
-            self._inter[INTER_DROPPED] += 1
-        row = self._agreement(s, pool, item)
-        for r, ok in zip(agree, row, strict=True):
-            r.append(ok)
-        agree.append([*row, True])
-        pool.append(item)
-
-    def _agreement(self, s: Session, pool: list[Waiting], item: Waiting) -> list[bool]:
-        """Whether ``item`` agrees with each member of ``pool`` (:func:`.anchoring.pair_statistic`)."""
-        if not pool:
-            return []
-        placed = [o for o in self._sessions.values() if o.anchored and o is not s]
-        a_covs = self._path_covariances(item.fixed, [w.fixed for w in pool], sessions=placed)
-        b_covs = self._path_covariances(item.free, [w.free for w in pool], sessions=[s])
-        est = self._isam.calculateEstimatePose3
-        x_a, e_b = est(item.fixed).matrix(), est(item.free).matrix()
-        out = []
-        for w, a_cov, b_cov in zip(pool, a_covs, b_covs, strict=True):
-            if a_cov is None or b_cov is None or w.fixed == item.fixed and w.free == item.free:
-                out.append(w.fixed == item.fixed and w.free == item.free)
-                continue
-            # pair (w, item): i = w, j = item; covariances in the item's tangents
-            stat = pair_statistic(z_i=w.measured, cov_i=w.cov, z_j=item.measured, cov_j=item.cov,
-                                  a_rel=invert(est(w.fixed).matrix()) @ x_a, a_cov=a_cov,
-                                  b_rel=invert(est(w.free).matrix()) @ e_b, b_cov=b_cov)
-            out.append(stat <= self._agree)
-        return out
-
-    def _try_anchor(self, s: Session, *, contradicting: bool) -> bool:
-        """Place (or move) ``s`` on the largest agreeing set of its waiting (contradicting) loops once it is large
-        and spread enough (and, to move an anchor, larger than the loops holding it); True when the newest
-        loop is among those placing it."""
-        policy = self.config.sessions
-        pool, agree = (s.contradicting, s.contradicting_agree) if contradicting else (s.waiting, s.waiting_agree)
-        if len(pool) < policy.min_loops:
-            return False
-        support = sum(1 for lp in self._loops if self._is_between(lp, s)) if contradicting else 0
-        clique = max_clique(np.array(agree, bool))
-        if len(clique) < policy.min_loops or len(clique) <= support:
-            return False
-        travel = [self._travel(pool[i].free) for i in clique]
-        if max(travel) - min(travel) < policy.min_spread_m:
-            return False
-        newest = len(pool) - 1 in clique
-        self._anchor(s, [pool[i] for i in clique], contradicting=contradicting)
-        return newest
-
-    def _is_between(self, loop: _Loop, s: Session) -> bool:
-        """Whether ``loop`` joins ``s`` to another session."""
-        a, b = self._key_session[loop.parent], self._key_session[loop.child]
-        return a is not b and s in (a, b)
-
-    def _anchor(self, s: Session, members: list[Waiting], *, contradicting: bool) -> None:
-        """Place ``s`` in the map frame on ``members`` (loops that agree): the graph rebuilt with ``s``'s nodes
-        moved by the transform the members imply and their factors in; the other loops of the pool left to
-        contradict it. When ``s`` was placed already its loops to other sessions are withdrawn first."""
-        tic = time.perf_counter()
-        est = self._node_estimates()
-        moves = [implied_transform(est[w.fixed], w.measured, est[w.free]) for w in members]
-        spread = [sum(float(np.linalg.norm(m[:3, 3] - o[:3, 3])) for o in moves) for m in moves]
-        move = moves[int(np.argmin(spread))]  # the medoid
-        if s.anchored:
-            kept = [lp for lp in self._loops if not self._is_between(lp, s)]
-            self._inter[INTER_WITHDRAWN] += len(self._loops) - len(kept)
-            self._inter[REANCHORS] += 1
-            self._loops = []
-            for lp in kept:
-                self._loops.append(lp)
-        else:
-            self._inter[ANCHORS] += 1
-        chosen = {id(w) for w in members}
-        rest = [w for w in (s.contradicting if contradicting else s.waiting) if id(w) not in chosen]
-        if not contradicting:
-            self._inter[INTER_CONTRADICTING] += len(rest)
-            for w in rest:  # they disagree with the anchor: kept as evidence against it
-                s.contradicting.append(w)
-        s.waiting, s.waiting_agree = [], []
-        if contradicting:
-            s.contradicting, s.contradicting_agree = [], []
-            for w in rest:
-                self._push(s, s.contradicting, s.contradicting_agree, w, "contradicting")
-        else:
-            pending, s.contradicting, s.contradicting_agree = s.contradicting, [], []
-            s.anchored = True
-            for w in pending:
-                self._push(s, s.contradicting, s.contradicting_agree, w, "contradicting")
-        s.anchored = True
-        values = est.copy()
-        values[s.keys] = move @ est[s.keys]
-        for w in members:
-            w.loop.chi2 = 0.0
-            self._loops.append(w.loop)
-        self._inter[INTER_ACCEPTED] += len(members)
-        s.anchors += 1
-        s.anchored_stamp = float(s.stamps.view()[-1])
-        self._rebuild(values)
-        s.frame = s.newest @ invert(s.node_odom(-1))
-        self._rebuild_chain(s)
-        self._rebuild_loop_covariances()
-        self._last_anchor_s = time.perf_counter() - tic
-        unplaced, self._unplaced = self._unplaced, []
-        for loop, gtsam_cov in unplaced:  # loops waiting for either end to be placed
-            self._resubmit(loop, gtsam_cov)
-
-    def _resubmit(self, loop: _Loop, gtsam_cov: np.ndarray) -> None:
-        qs, ms = self._key_session[loop.child], self._key_session[loop.parent]
-        if not (qs.anchored and ms.anchored):
-            self._wait(loop, gtsam_cov)
-            return
-        chi2 = self._chi2(loop.parent, loop.child, loop.measured, gtsam_cov)
-        loop.chi2 = chi2
-        if chi2 <= self._threshold:
-            self._insert(loop, gtsam_cov)
-            self._inter[INTER_ACCEPTED] += 1
-        else:
-            self._rejected += 1
-            self._contradict(loop, gtsam_cov)
-
     def _rebuild(self, values: np.ndarray) -> None:
         """A fresh iSAM2 holding every session's chain, gauge priors (the map frame's session and those not
         placed), the accepted loops and the ups of placed sessions, started from ``values`` (keys, 4, 4)."""
@@ -918,26 +738,6 @@ class PoseGraphBackend:
         for _ in range(max(self.config.loops.iterations, 1)):
             self._update()
         self._refresh()
-
-    def _unanchor_cut_off(self) -> None:
-        """Sessions anchored only through loops that were withdrawn no longer reach the map: each goes back to
-        unanchored (counted), held where it is, so that no part of the graph floats free."""
-        group = {s.name: s.name for s in self._sessions.values()}
-
-        def find(name: str) -> str:
-            while group[name] != name:
-                group[name] = group[group[name]]
-                name = group[name]
-            return name
-
-        for lp in self._loops:
-            a, b = find(self._key_session[lp.parent].name), find(self._key_session[lp.child].name)
-            group[a] = b
-        mapped = {find(s.name) for s in self._sessions.values() if s.root or s.held}
-        for s in self._sessions.values():
-            if s.anchored and not (s.root or s.held) and find(s.name) not in mapped:
-                s.anchored = False
-                self._inter[UNANCHORS] += 1
 
     def _rebuild_chain(self, s: Session) -> None:
         """``s``'s prefix sums of step covariances again, in the map frame through its new anchoring frame."""
@@ -1034,7 +834,7 @@ class PoseGraphBackend:
                 saved.loop_nodes, saved.loop_measured, saved.loop_covariance, saved.loop_stamps,
                 saved.loop_chi2, strict=True):
             p, c = int(parent), int(child)  # file positions: the keys, as sessions were restored in order
-            self._loops.append(_Loop(p, c, measured.copy(), cov.copy(), (float(stamps[0]), float(stamps[1])),
+            self._loops.append(Loop(p, c, measured.copy(), cov.copy(), (float(stamps[0]), float(stamps[1])),
                                      float(chi2), np.zeros((6, 6)),
                                      (self._key_session[c].name, self._key_session[p].name)))
         self._ups = [(float(t), int(n), b.copy()) for t, n, b in zip(saved.up_stamps, saved.up_nodes, saved.up_body,

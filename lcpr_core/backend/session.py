@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import bisect
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
@@ -18,7 +17,7 @@ from ..errors import BackendError
 from ..geometry import interpolate_poses
 from ..growable import GrowableArray
 
-__all__ = ["DEFAULT_SESSION", "LOOP_AHEAD", "LOOP_OLD", "LOOP_UNKNOWN", "Session", "Waiting"]
+__all__ = ["DEFAULT_SESSION", "LOOP_AHEAD", "LOOP_OLD", "LOOP_UNKNOWN", "Loop", "Session", "Waiting"]
 
 DEFAULT_SESSION = "session"  # calls without session=, files from before sessions; the detector's default name
 
@@ -28,10 +27,24 @@ LOOP_AHEAD = "loop stamp ahead of odometry"
 
 
 @dataclass
+class Loop:
+    """A loop as the graph holds it: between two graph nodes, in their base frames."""
+
+    parent: int  # graph key of the match's node
+    child: int  # graph key of the query's node
+    measured: np.ndarray  # (4, 4) parent_T_child
+    covariance: np.ndarray  # (6, 6) ROS order, in the parent node's frame
+    stamps: tuple[float, float]  # (query, match) as given
+    chi2: float
+    world_cov: np.ndarray  # (6, 6) GTSAM order, moved into the map frame (path search)
+    sessions: tuple[str, str] = (DEFAULT_SESSION, DEFAULT_SESSION)  # (query, match)
+
+
+@dataclass
 class Waiting:
     """An inter-session loop not (or no longer) in the graph, normalised to ``Z = X_fixed^-1 X_free``."""
 
-    loop: Any  # the graph's _Loop, as it would enter the graph
+    loop: Loop  # as it would enter the graph
     fixed: int  # key of its end in a placed session
     free: int  # key of its end in the session it would place
     measured: np.ndarray  # (4, 4) Z

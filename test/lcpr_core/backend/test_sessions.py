@@ -10,7 +10,7 @@ import pytest
 pytest.importorskip("gtsam")
 
 from lcpr_core.backend import BackendConfig, PoseGraphBackend  # noqa: E402
-from lcpr_core.backend.graph import ANCHORS, INTER_WAITING, REANCHORS  # noqa: E402
+from lcpr_core.backend.placing import ANCHORS, INTER_WAITING, REANCHORS  # noqa: E402
 from lcpr_core.errors import BackendError  # noqa: E402
 from lcpr_core.geometry import rotation_angle_deg  # noqa: E402
 from lcpr_core.posegraph import DriftModel, drift_odometry  # noqa: E402
