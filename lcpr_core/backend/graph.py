@@ -350,13 +350,14 @@ class PoseGraphBackend(SessionPlacing):
     # -- file ------------------------------------------------------------------------------
     def save(self, path: str | os.PathLike[str]) -> None:
         """Write the graph as .npz (atomically; no pickled objects): sessions, odometry, nodes, factors,
-        estimates. Loops still waiting to place a session are not kept."""
+        estimates, and the inter-session loops still waiting (taken up again by :meth:`load`)."""
         order = list(self._sessions.values())
         position = self._positions(order)
         est = self._node_estimates()
         keys = np.array([k for s in order for k in s.keys], np.int64)
         step = [np.concatenate([np.zeros((1, 6, 6)), s.step_cov.view()]) if s.keys else np.zeros((0, 6, 6))
                 for s in order]
+        pending = [w.loop for s in order for w in (*s.waiting, *s.contradicting)] + [lp for lp, _ in self._unplaced]
         write_graph_file(path, SavedGraph(
             base_T_lidar=np.array(self.config.base_T_lidar),
             stamps=_cat([s.stamps.view() for s in order], (0,)),
@@ -375,6 +376,11 @@ class PoseGraphBackend(SessionPlacing):
             up_body=np.array([u[2] for u in self._ups], np.float64).reshape(-1, 3),
             up_world=np.full(3, np.nan) if self._up_world is None else self._up_world,
             rejected=self._rejected, redundant=self._redundant, refused=dict(self._refused),
+            waiting_nodes=np.array([(position[lp.parent], position[lp.child]) for lp in pending],
+                                   np.int64).reshape(-1, 2),
+            waiting_measured=np.array([lp.measured for lp in pending], np.float64).reshape(-1, 4, 4),
+            waiting_covariance=np.array([lp.covariance for lp in pending], np.float64).reshape(-1, 6, 6),
+            waiting_stamps=np.array([lp.stamps for lp in pending], np.float64).reshape(-1, 2),
             sessions=[SavedSession(name=s.name, rows=len(s.stamps), nodes=len(s.keys), root=s.root,
                                    anchored=s.anchored, frame=s.frame, anchors=s.anchors, held=s.held)
                       for s in order],
@@ -845,6 +851,12 @@ class PoseGraphBackend(SessionPlacing):
         if self._key_session:
             self._rebuild(self._held)
         self._rebuild_loop_covariances()
+        for (parent, child), measured, cov, stamps in zip(saved.waiting_nodes, saved.waiting_measured,
+                                                          saved.waiting_covariance, saved.waiting_stamps, strict=True):
+            p, c = int(parent), int(child)  # waiting again: judged as when they came (their counts are saved)
+            loop = Loop(p, c, measured.copy(), cov.copy(), (float(stamps[0]), float(stamps[1])), math.nan,
+                        np.zeros((6, 6)), (self._key_session[c].name, self._key_session[p].name))
+            self._resubmit(loop, to_gtsam_covariance(loop.covariance, loop.measured[:3, :3]))
         self._rejected, self._redundant, self._refused = saved.rejected, saved.redundant, Counter(saved.refused)
         self._inter = Counter(saved.inter_session)
 # ============================================================================ helpers

@@ -34,7 +34,8 @@ _SHAPES: dict[str, tuple[int | None, ...]] = {
     "node_estimate": (None, 4, 4), "step_covariance": (None, 6, 6), "loop_nodes": (None, 2),
     "loop_measured": (None, 4, 4), "loop_covariance": (None, 6, 6), "loop_stamps": (None, 2),
     "loop_chi2": (None,), "up_stamps": (None,), "up_nodes": (None,), "up_body": (None, 3),
-    "up_world": (3,)}
+    "up_world": (3,), "waiting_nodes": (None, 2), "waiting_measured": (None, 4, 4),
+    "waiting_covariance": (None, 6, 6), "waiting_stamps": (None, 2)}
 
 
 @dataclass(frozen=True)
@@ -93,6 +94,11 @@ class SavedGraph:
     refused: dict[str, int]  # inputs refused, by reason
     sessions: list[SavedSession]
     inter_session: dict[str, int]  # inter-session loops by outcome, anchors
+    # inter-session loops not in the graph (waiting to place a session, or contradicting its anchor), as loops
+    waiting_nodes: np.ndarray  # (W, 2) (parent, child) nodes
+    waiting_measured: np.ndarray  # (W, 4, 4) parent_T_child
+    waiting_covariance: np.ndarray  # (W, 6, 6) ROS order, in the parent node's frame
+    waiting_stamps: np.ndarray  # (W, 2) (query, match) stamps as given
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The file's arrays: the schema, the version, every array of :data:`_SHAPES` and the counters."""
@@ -118,6 +124,9 @@ class SavedGraph:
         if version == 1:  # before measured ups
             data = {**data, "up_stamps": np.zeros(0), "up_nodes": np.zeros(0, np.int64), "up_body": np.zeros((0, 3)),
                     "up_world": np.full(3, np.nan)}
+        if version is not None and version < 3:  # before sessions: no loop waited
+            data = {**data, "waiting_nodes": np.zeros((0, 2), np.int64), "waiting_measured": np.zeros((0, 4, 4)),
+                    "waiting_covariance": np.zeros((0, 6, 6)), "waiting_stamps": np.zeros((0, 2))}
         for name, shape in _SHAPES.items():
             arr = data.get(name)
             if arr is None or arr.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, arr.shape,
@@ -158,7 +167,11 @@ class SavedGraph:
                 or (nl and (data["loop_nodes"].min() < 0 or data["loop_nodes"].max() >= k))
                 or len(data["up_nodes"]) != len(data["up_stamps"]) or len(data["up_body"]) != len(data["up_stamps"])
                 or (len(data["up_nodes"]) and (data["up_nodes"].min() < 0 or data["up_nodes"].max() >= k))
-                or not (np.isfinite(data["up_world"]).all() or np.isnan(data["up_world"]).all())):
+                or not (np.isfinite(data["up_world"]).all() or np.isnan(data["up_world"]).all())
+                or any(len(data[f"waiting_{s}"]) != len(data["waiting_nodes"])
+                       for s in ("measured", "covariance", "stamps"))
+                or (len(data["waiting_nodes"]) and (data["waiting_nodes"].min() < 0
+                                                    or data["waiting_nodes"].max() >= k))):
             raise bad(f"inconsistent arrays ({n} odometry stamps, {k} nodes, {nl} loops); the file is damaged")
         try:
             counters = json.loads(str(data["counters"]))

@@ -192,3 +192,21 @@ def test_a_prior_graph_is_checked_against_the_descriptor_map_it_is_loaded_beside
     with pytest.raises(BackendError, match=r"1 keyframes of session 'a' \(first at stamp 1800000000\.0\) lie "
                                            r"outside its odometry"):
         g.check_map(["a", "a"], np.array([T0 + 1.0, 1.8e9]))
+
+
+def test_loops_waiting_to_place_a_session_are_saved_and_place_it_after_a_restart(tmp_path: Path) -> None:
+    two = Two()
+    g = two.prior(tmp_path)
+    two.feed_b(g, 40)
+    for i in (10, 20):  # two loops: one short of anchoring
+        q, m, rel = two.true_loop(i)
+        g.add_loop(q, m, rel, LOOP_COV, query_session="b", match_session="a")
+    assert not g.anchored("b") and g.stats().inter_session[INTER_WAITING] == 2
+    g.save(tmp_path / "ab.npz")
+    again = PoseGraphBackend.load(tmp_path / "ab.npz")
+    assert again.stats().inter_session[INTER_WAITING] == 2 and not again.anchored("b")
+    for i in range(40, 60):
+        again.add_odometry(float(two.stamps_b[i]), two.odom_b[i], session="b")
+    q, m, rel = two.true_loop(50)
+    assert again.add_loop(q, m, rel, LOOP_COV, query_session="b", match_session="a")  # the third places it
+    assert again.anchored("b") and frame_error(two, again, 59)[0] < 0.3
