@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from lcpr_common.params import param, param_from
-from lcpr_core.backend import BackendConfig, KeyframeRule, LoopPolicy, OdometryNoise, SessionPolicy
+from lcpr_core.backend import MAX_SESSION_NAME, BackendConfig, KeyframeRule, LoopPolicy, OdometryNoise, SessionPolicy
 from lcpr_core.geometry import pose_from_xyz_rpy
 from ros_common.config import DiagnosticsConfig, MapFileConfig, check_node_fields, input_qos_param, require
 from ros_common.params import Leaf, build, describe, leaves, read_params_file, to_yaml, unique
@@ -26,7 +26,6 @@ from ros_common.params import Leaf, build, describe, leaves, read_params_file, t
 __all__ = ["MARKDOWN_PAGE", "BackendNodeConfig", "GraphFileConfig", "LidarMount", "all_leaves", "describe_all",
            "markdown_text", "settings_from", "settings_from_file", "yaml_text"]
 
-MAX_SESSION_NAME = 256  # characters, as the back end accepts
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -207,18 +207,27 @@ class BackendNode(NodeStats, Node):
         self.drops.add(err.reason)
         self.warnings(err.reason, err.detail)
 
-    def _on_odom(self, msg: Odometry) -> None:
-        self.rates.tick(self.settings.odom_topic)
+    def _odometry_in(self, msg: Odometry, topic: str, order: StampOrder, where: str) -> tuple[int, np.ndarray] | None:
+        """(stamp ns, odom_T_base) of an odometry message on ``topic`` (counted), or None with the refusal counted:
+        a pose that is not one, or a stamp out of ``order`` (``where`` names it in the warning)."""
+        self.rates.tick(topic)
         ns = stamp_ns(msg.header)
         try:
             pose = odometry_pose(msg)
         except InputRejected as err:
             self._reject(err)
-            return
-        refused = self._order.check(ns)
+            return None
+        refused = order.check(ns)
         if refused is not None:
-            self._reject(InputRejected(f"odometry: {refused}", f"stamp {ns / NS_PER_S:.9f}"))
+            self._reject(InputRejected(f"odometry: {refused}", f"{where}stamp {ns / NS_PER_S:.9f}"))
+            return None
+        return ns, pose
+
+    def _on_odom(self, msg: Odometry) -> None:
+        taken = self._odometry_in(msg, self.settings.odom_topic, self._order, "")
+        if taken is None:
             return
+        ns, pose = taken
         if not self._frames[0] or not self._frames[1]:
             self._frames = (self._frames[0] or msg.header.frame_id or "odom",
                             self._frames[1] or msg.child_frame_id or "base_link")
@@ -238,18 +247,9 @@ class BackendNode(NodeStats, Node):
 
     def _on_peer_odom(self, session: str, topic: str, order: StampOrder, msg: Odometry) -> None:
         """A peer robot's odometry: checked as this run's is, queued as its session (nothing is published)."""
-        self.rates.tick(topic)
-        ns = stamp_ns(msg.header)
-        try:
-            pose = odometry_pose(msg)
-        except InputRejected as err:
-            self._reject(err)
-            return
-        refused = order.check(ns)
-        if refused is not None:
-            self._reject(InputRejected(f"odometry: {refused}", f"{topic} stamp {ns / NS_PER_S:.9f}"))
-            return
-        self.worker.submit(_Odom(ns / NS_PER_S, pose, session))
+        taken = self._odometry_in(msg, topic, order, f"{topic} ")
+        if taken is not None:
+            self.worker.submit(_Odom(taken[0] / NS_PER_S, taken[1], session))
 
     def _parsed(self, msg: Any, topic: str, parse: Any, reason: str) -> Any:
         """``parse(msg)`` of a message on ``topic`` (counted), or None with the refusal counted under ``reason``."""

@@ -415,13 +415,13 @@ class DescriptorMap(RowAccess):
         (what a back end checks a prior graph against: ``PoseGraphBackend.check_map``)."""
         where = os.fspath(path)
         header, data = read_map_file(where, kind="map file", file_format=_FORMAT, versions=_READABLE_VERSIONS,
-                                     required=_NPZ_KEYS, optional_group=_CLOUD_KEYS,
-                                     optional=(_ORIENTATIONS, _SCAN_CONTEXTS))
+                                     required=("stamps", "source_codes"))  # not the descriptors, nor the clouds
         check_header_fields(header, (("sources", list),), kind="map file", where=where)
         names, codes = header["sources"], np.asarray(data["source_codes"])
-        bad_codes = len(codes) and (codes.min() < 0 or codes.max() >= len(names))
+        bad_codes = len(codes) != len(data["stamps"]) or (len(codes) and (codes.min() < 0 or codes.max() >= len(names)))
         if not all(isinstance(n, str) for n in names) or bad_codes:
-            raise MapError(f"map file {where}: its sources {names!r} do not name every entry's source code")
+            raise MapError(f"map file {where}: its sources {names!r} do not name every entry's source code (one "
+                           "per stamp)")
         return [names[int(c)] for c in codes], np.asarray(data["stamps"], np.float64)
 
     @classmethod

@@ -41,14 +41,12 @@ from lcpr_core.detector import (
     encode_peer_keyframe,
 )
 from lcpr_core.errors import BackendError
-from lcpr_core.geometry import invert, rotation_angle_deg
-from lcpr_core.loop_report import pose_right
+from lcpr_core.geometry import invert
+from lcpr_core.posegraph import ate_rmse
 
-from .relocalize import Step, map_places
+from .relocalize import LoopScores, Step, ate_against_map, map_places
 
-__all__ = ["LOOSE_DEG", "LOOSE_M", "FleetResult", "Robot", "fleet_replay"]
-
-LOOSE_M, LOOSE_DEG = 0.5, 3.0  # an inter-robot loop a pose graph can use (the fleet's target), beside pose_right
+__all__ = ["FleetResult", "Robot", "fleet_replay"]
 
 
 @dataclass
@@ -114,13 +112,10 @@ def fleet_replay(robots: Sequence[Robot], *, detector: DetectorConfig, backend: 
     sent: list[tuple[str, bytes]] = []  # every record so far, for a robot that starts late
     truth: dict[tuple[str, float], np.ndarray] = {}  # (session, stamp) -> reference pose
     taken: set[tuple[str, float, str, float]] = set()
-    right = wrong = loose = 0
-    loop_m: list[float] = []
-    loop_deg: list[float] = []
+    scores = LoopScores()
     anchored: dict[str, float | None] = {r.name: None for r in robots}
 
     def take(result: Result) -> None:
-        nonlocal right, wrong, loose
         for c in result.candidates:
             if not (c.verified and c.match_T_query is not None):
                 continue
@@ -134,17 +129,8 @@ def fleet_replay(robots: Sequence[Robot], *, detector: DetectorConfig, backend: 
             except BackendError:
                 continue
             if c.query_session != c.match_session and (ok or graph.anchored(c.query_session)):
-                ref = (invert(truth[(c.match_session, c.match_stamp)] @ base_T_lidar)
-                       @ truth[(c.query_session, c.query_stamp)] @ base_T_lidar)
-                err = invert(ref) @ c.match_T_query
-                loop_m.append(float(np.linalg.norm(err[:3, 3])))
-                loop_deg.append(float(rotation_angle_deg(err[:3, :3])))
-                if pose_right(ref, c.match_T_query):
-                    right += 1
-                else:
-                    wrong += 1
-                if loop_m[-1] <= LOOSE_M and loop_deg[-1] <= LOOSE_DEG:
-                    loose += 1
+                scores.add(c.match_T_query, invert(truth[(c.match_session, c.match_stamp)] @ base_T_lidar)
+                           @ truth[(c.query_session, c.query_stamp)] @ base_T_lidar)
 
     def deliver(sender: str, record: bytes, to: list[str]) -> None:
         for name in to:
@@ -174,7 +160,7 @@ def fleet_replay(robots: Sequence[Robot], *, detector: DetectorConfig, backend: 
             anchored[robot.name] = t - (t0 + robot.delay_s)
     ates: dict[str, float | None] = {}
     against_map: dict[str, float | None] = {}
-    errors: list[np.ndarray] = []
+    tracks: list[tuple[np.ndarray, np.ndarray]] = []  # (estimate, reference) of each anchored robot
     first = robots[0].name
     kf = sorted(t for (name, t) in truth if name == first and t in set(graph.nodes(first)[0].tolist()))
     in_map = map_places(graph, first, np.array(kf), np.stack([truth[(first, t)] for t in kf])) if kf else None
@@ -186,24 +172,17 @@ def fleet_replay(robots: Sequence[Robot], *, detector: DetectorConfig, backend: 
         ref = np.stack([truth[(r.name, float(s))] for s in stamps])
         since = anchored[r.name] or 0.0
         keep = stamps >= t0 + r.delay_s + since
-        err = np.linalg.norm(traj[keep, :3, 3] - ref[keep, :3, 3], axis=1)
-        ates[r.name] = float(np.sqrt(np.mean(err**2))) if len(err) else None
-        errors.append(err)
+        ates[r.name] = ate_rmse(traj[keep], ref[keep]) if keep.any() else None
+        tracks.append((traj[keep], ref[keep]))
         if r.name != first and in_map is not None:
-            placed = [(x, in_map(p)) for x, p in zip(traj[keep], ref[keep], strict=True)]
-            d2 = [float(np.sum((x[:3, 3] - m[:3, 3]) ** 2)) for x, m in placed if m is not None]
-            against_map[r.name] = float(np.sqrt(np.mean(d2))) if d2 else None
-    merged = np.concatenate(errors) if errors else np.zeros(0)
+            against_map[r.name] = ate_against_map(traj[keep], ref[keep], in_map)
+    merged = [np.concatenate([track[k] for track in tracks]) for k in (0, 1)] if tracks else None
     stats = graph.stats()
     return FleetResult(robots=names, anchored_at_s=anchored, ate_m=ates, ate_vs_map_m=against_map,
-                       merged_ate_m=float(np.sqrt(np.mean(merged**2))) if len(merged) else None,
-                       loops={"right": right, "wrong": wrong, "within 0.5 m / 3 deg": loose}, keyframes=len(sent),
+                       merged_ate_m=None if merged is None or not len(merged[0]) else ate_rmse(*merged),
+                       loops=scores.counts(), keyframes=len(sent),
                        bytes_per_keyframe=float(np.mean([len(b) for _, b in sent])) if sent else 0.0,
-                       inter_session=stats.inter_session, refused=stats.refused,
-                       loop_error={} if not loop_m else {
-                           "p50_m": float(np.median(loop_m)), "p90_m": float(np.percentile(loop_m, 90)),
-                           "max_m": float(np.max(loop_m)), "p50_deg": float(np.median(loop_deg)),
-                           "p90_deg": float(np.percentile(loop_deg, 90)), "max_deg": float(np.max(loop_deg))})
+                       inter_session=stats.inter_session, refused=stats.refused, loop_error=scores.spread())
 
 
 @tool_main

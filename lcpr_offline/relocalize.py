@@ -41,11 +41,14 @@ from lcpr_core.detector import DetectorConfig, Frame, LoopDetector
 from lcpr_core.errors import BackendError
 from lcpr_core.geometry import invert, rotation_angle_deg
 from lcpr_core.loop_report import pose_right
+from lcpr_core.posegraph import ate_rmse
 
 LOCAL_M = 25.0  # m: a run pose is judged against the map where a prior keyframe lies this close
+LOOSE_M, LOOSE_DEG = 0.5, 3.0  # an inter-session loop a pose graph can use (the sessions' targets), beside pose_right
 
-__all__ = ["LOCAL_M", "BagSteps", "CitysimSteps", "Prior", "RelocalizationResult", "Step", "build_prior",
-           "map_places", "random_move", "relocalize", "step_frame"]
+__all__ = ["LOCAL_M", "LOOSE_DEG", "LOOSE_M", "BagSteps", "CitysimSteps", "LoopScores", "Prior",
+           "RelocalizationResult", "Step", "ate_against_map", "build_prior", "map_places", "random_move",
+           "relocalize", "step_frame"]
 
 
 @dataclass(frozen=True)
@@ -58,6 +61,40 @@ class Step:
     odometry: np.ndarray
     reference: np.ndarray
     images: Sequence[Any] | None = None
+
+
+@dataclass
+class LoopScores:
+    """Loops judged by their pose against the reference's: right (:func:`~lcpr_core.loop_report.pose_right`),
+    within ``LOOSE_M`` / ``LOOSE_DEG``, and each one's error."""
+
+    errors_m: list[float] = field(default_factory=list)
+    errors_deg: list[float] = field(default_factory=list)
+    right: int = 0
+    within: int = 0
+
+    def add(self, match_T_query: np.ndarray, true_match_T_query: np.ndarray) -> None:
+        err = invert(true_match_T_query) @ match_T_query
+        self.errors_m.append(float(np.linalg.norm(err[:3, 3])))
+        self.errors_deg.append(float(rotation_angle_deg(err[:3, :3])))
+        self.right += pose_right(match_T_query, true_match_T_query)
+        self.within += self.errors_m[-1] <= LOOSE_M and self.errors_deg[-1] <= LOOSE_DEG
+
+    @property
+    def count(self) -> int:
+        return len(self.errors_m)
+
+    def counts(self) -> dict[str, int]:
+        return {"right": self.right, "wrong": self.count - self.right, "within 0.5 m / 3 deg": self.within}
+
+    def spread(self) -> dict[str, float]:
+        """Median, p90 and largest error, in m and deg (empty without loops)."""
+        if not self.count:
+            return {}
+        m, deg = np.array(self.errors_m), np.array(self.errors_deg)
+        return {"p50_m": float(np.median(m)), "p90_m": float(np.percentile(m, 90)), "max_m": float(m.max()),
+                "p50_deg": float(np.median(deg)), "p90_deg": float(np.percentile(deg, 90)),
+                "max_deg": float(deg.max())}
 
 
 @dataclass
@@ -167,8 +204,7 @@ def build_prior(steps: Sequence[Step], *, detector: DetectorConfig, backend: Bac
     det.map.save(map_path)
     graph.save(graph_path)
     _, traj = graph.trajectory(session)
-    ref = np.stack(refs)
-    ate = float(np.sqrt(np.mean(np.sum((traj[:, :3, 3] - ref[:, :3, 3]) ** 2, axis=1))))
+    ate = ate_rmse(traj, np.stack(refs))
     return Prior(map_path=map_path, graph_path=graph_path, session=session,
                  keyframe_stamps=np.array(kf_stamps, np.float64),
                  keyframe_reference=np.stack(kf_ref) if kf_ref else np.zeros((0, 4, 4)), ate_m=ate)
@@ -191,7 +227,7 @@ def relocalize(prior: Prior, steps: Sequence[Step], *, detector: DetectorConfig,
     travel_at_reach = travel_at_anchor = None
     errors: list[tuple[float, float, float]] = []  # (stamp, m, deg) from anchoring on
     at_anchor = None
-    right = wrong = loose = 0
+    scores = LoopScores()
     refs: list[np.ndarray] = []
     prior_lidar = {float(t): p for t, p in zip(prior.keyframe_stamps, prior.keyframe_reference, strict=True)}
     in_map = map_places(graph, prior.session, prior.keyframe_stamps, prior.keyframe_reference)
@@ -213,13 +249,8 @@ def relocalize(prior: Prior, steps: Sequence[Step], *, detector: DetectorConfig,
                 continue
             match_session = prior.session if c.match_stamp in prior_lidar else session
             if match_session != session:
-                ref = invert(prior_lidar[c.match_stamp] @ base_T_lidar) @ step.reference @ base_T_lidar
-                if pose_right(ref, c.match_T_query):
-                    right += 1
-                else:
-                    wrong += 1
-                err = invert(ref) @ c.match_T_query
-                loose += int(np.linalg.norm(err[:3, 3]) <= 0.5 and rotation_angle_deg(err[:3, :3]) <= 3.0)
+                scores.add(c.match_T_query,
+                           invert(prior_lidar[c.match_stamp] @ base_T_lidar) @ step.reference @ base_T_lidar)
             try:  # a refused loop is counted by the back end (stats().refused), as the node does
                 graph.add_loop(c.query_stamp, c.match_stamp, c.match_T_query, c.covariance,
                                query_session=session, match_session=match_session)
@@ -246,7 +277,7 @@ def relocalize(prior: Prior, steps: Sequence[Step], *, detector: DetectorConfig,
                                anchored_xy=None if anchored is None else _xy(graph.pose(anchored, session=session)),
                                frame_error_at_anchor=None,
                                frame_error_end=None, frame_error_max=None, ate_m=None, prior_ate_m=prior.ate_m,
-                               loops={"right": right, "wrong": wrong, "within 0.5 m / 3 deg": loose},
+                               loops=scores.counts(),
                                inter_session=stats.inter_session, refused=stats.refused,
                                anchor_solve_s=stats.last_anchor_s)
     if anchored is not None and at_anchor is not None and travel_at_anchor is not None:
@@ -257,10 +288,8 @@ def relocalize(prior: Prior, steps: Sequence[Step], *, detector: DetectorConfig,
         stamps, traj = graph.trajectory(session)
         ref = np.stack(refs)
         keep = stamps >= anchored
-        out.ate_truth_m = float(np.sqrt(np.mean(np.sum((traj[keep, :3, 3] - ref[keep, :3, 3]) ** 2, axis=1))))
-        mapped = [(x, in_map(r)) for x, r in zip(traj[keep], ref[keep], strict=True)]
-        d2 = [float(np.sum((x[:3, 3] - m[:3, 3]) ** 2)) for x, m in mapped if m is not None]
-        out.ate_m = float(np.sqrt(np.mean(d2))) if d2 else None
+        out.ate_truth_m = ate_rmse(traj[keep], ref[keep])
+        out.ate_m = ate_against_map(traj[keep], ref[keep], in_map)
         out.frame_error_truth_end = truth_errors[-1]
     return out
 
@@ -281,6 +310,16 @@ def map_places(graph: PoseGraphBackend, session: str, stamps: np.ndarray,
         return local[j] @ reference if d[j] <= LOCAL_M else None
 
     return in_map
+
+
+def ate_against_map(poses: np.ndarray, references: np.ndarray,
+                    in_map: Callable[[np.ndarray], np.ndarray | None]) -> float | None:
+    """RMSE (m) of ``poses`` (N, 4, 4) against where the map has their ``references`` (:func:`map_places`), over
+    the poses near the map; None when none is."""
+    placed = [(x, there) for x, r in zip(poses, references, strict=True) if (there := in_map(r)) is not None]
+    if not placed:
+        return None
+    return ate_rmse(np.stack([x for x, _ in placed]), np.stack([m for _, m in placed]))
 
 
 def random_move(seed: int, *, span_m: float = 100.0) -> np.ndarray:

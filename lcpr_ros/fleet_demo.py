@@ -39,15 +39,14 @@ import numpy as np
 
 from lcpr_common.progress import progress_iter
 from lcpr_core.atomic import write_bytes_atomic
-from lcpr_core.geometry import invert, pose_from_xyz_rpy, rotation_angle_deg, xyz_rpy_from_pose
-from lcpr_core.loop_report import pose_right
-from lcpr_core.posegraph import DriftModel, drift_odometry
+from lcpr_core.geometry import invert, pose_from_xyz_rpy, xyz_rpy_from_pose
+from lcpr_core.posegraph import DriftModel, ate_rmse, drift_odometry
 from lcpr_core.pretrained import BUNDLED, describe_weights, resolve_weights
 from lcpr_core.timing import cpu_model
+from lcpr_offline.relocalize import LOOSE_DEG, LOOSE_M, LoopScores, ate_against_map, map_places, random_move
 from msg_tools.frames import NUSCENES_TOPICS
 
 ROBOTS = ("robot1", "robot2")
-LOOSE_M, LOOSE_DEG = 0.5, 3.0  # an inter-robot loop a pose graph can use
 DAY_S = 86400.0  # citysim's drive K starts K days after drive 0: moved back to share drive 0's clock
 REPLAYED = (*NUSCENES_TOPICS.cameras, NUSCENES_TOPICS.lidar, NUSCENES_TOPICS.odom, NUSCENES_TOPICS.tf_static)
 
@@ -95,7 +94,6 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 def make_drives(args: argparse.Namespace) -> list[RobotDrive]:
     """Render (or reuse) each robot's bag; its truth and the odometry it will be given."""
     from citysim import SynthConfig, SyntheticDrive, write_bag_once
-    from lcpr_offline.relocalize import random_move
 
 
     width, height = (int(v) for v in args.image_size.lower().split("x"))
@@ -385,22 +383,12 @@ def _wait_until_quiet(listener: Listener, *, quiet_s: float, timeout: float) -> 
     return listener.last_heard
 
 
-@dataclass
-class LoopCheck:
+def check_loops(drives: list[RobotDrive], rows: list[dict[str, float]], table: list[str]) -> LoopScores:
     """Robot1's verified inter-robot rows judged against the truth."""
-
-    rows: int = 0
-    within: int = 0  # within LOOSE_M / LOOSE_DEG
-    right: int = 0  # pose_right
-    errors_m: list[float] = field(default_factory=list)
-    errors_deg: list[float] = field(default_factory=list)
-
-
-def check_loops(drives: list[RobotDrive], rows: list[dict[str, float]], table: list[str]) -> LoopCheck:
     from ros_common.tables import row_pose
 
     by_name = {d.name: d for d in drives}
-    out = LoopCheck()
+    out = LoopScores()
     for row in rows:
         if row.get("verified", 0.0) != 1.0 or (pose := row_pose(row)) is None:
             continue
@@ -408,19 +396,9 @@ def check_loops(drives: list[RobotDrive], rows: list[dict[str, float]], table: l
         if not all(np.isfinite(codes)) or codes[0] == codes[1] or max(codes) >= len(table):
             continue
         q, m = by_name[table[int(codes[0])]], by_name[table[int(codes[1])]]
-        ref = (invert(m.truth[m.index(row["match_stamp"])] @ m.base_T_lidar)
-               @ q.truth[q.index(row["query_stamp"])] @ q.base_T_lidar)
-        err = invert(ref) @ pose
-        out.rows += 1
-        out.errors_m.append(float(np.linalg.norm(err[:3, 3])))
-        out.errors_deg.append(float(rotation_angle_deg(err[:3, :3])))
-        out.within += out.errors_m[-1] <= LOOSE_M and out.errors_deg[-1] <= LOOSE_DEG
-        out.right += pose_right(pose, ref)
+        out.add(pose, invert(m.truth[m.index(row["match_stamp"])] @ m.base_T_lidar)
+                @ q.truth[q.index(row["query_stamp"])] @ q.base_T_lidar)
     return out
-
-
-def _ate(traj: np.ndarray, truth: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(np.sum((traj[:, :3, 3] - truth[:, :3, 3]) ** 2, axis=1))))
 
 
 def report(args: argparse.Namespace, drives: list[RobotDrive], listener: Listener, graph_file: Path, *,
@@ -442,20 +420,17 @@ def report(args: argparse.Namespace, drives: list[RobotDrive], listener: Listene
             continue
         stamps, traj = graph.trajectory(d.name)
         truth = d.truth[[d.index(float(s)) for s in stamps]]
-        ates[d.name], tracks[d.name] = _ate(traj, truth), (traj, truth)
-    odom_ate[ROBOTS[0]] = _ate(drives[0].odometry, drives[0].truth)  # robot1's odometry frame is the map
+        ates[d.name], tracks[d.name] = ate_rmse(traj, truth), (traj, truth)
+    odom_ate[ROBOTS[0]] = ate_rmse(drives[0].odometry, drives[0].truth)  # robot1's odometry frame is the map
     merged = None
     if len(tracks) == len(drives):
-        merged = _ate(np.concatenate([t for t, _ in tracks.values()]), np.concatenate([r for _, r in tracks.values()]))
+        merged = ate_rmse(np.concatenate([t for t, _ in tracks.values()]),
+                          np.concatenate([r for _, r in tracks.values()]))
     against_map = None  # robot2 against where robot1's map has its places (lcpr_offline.relocalize.map_places)
     if ROBOTS[0] in tracks and ROBOTS[1] in tracks:
-        from lcpr_offline.relocalize import map_places
-
         kf, _ = graph.nodes(ROBOTS[0])
         in_map = map_places(graph, ROBOTS[0], kf, drives[0].truth[[drives[0].index(float(t)) for t in kf]])
-        placed = [(x, in_map(r)) for x, r in zip(*tracks[ROBOTS[1]], strict=True)]
-        d2 = [float(np.sum((x[:3, 3] - m[:3, 3]) ** 2)) for x, m in placed if m is not None]
-        against_map = float(np.sqrt(np.mean(d2))) if d2 else None
+        against_map = ate_against_map(*tracks[ROBOTS[1]], in_map)
     loops = check_loops(drives, listener.rows, listener.table)
     taken = [pair for pair in graph.session_loops() if pair[0] != pair[2]]
     sizes = [b for robot in ROBOTS for b in listener.keyframe_bytes[robot]]
@@ -485,8 +460,8 @@ def report(args: argparse.Namespace, drives: list[RobotDrive], listener: Listene
     print(f"  ATE in the map:     robot1 {show(ates[ROBOTS[0]])} (its odometry alone {odom_ate[ROBOTS[0]]:.2f} m), "
           f"robot2 {show(ates[ROBOTS[1]])}, merged {show(merged)} (every graph node of the saved graph); "
           f"robot2 against robot1's map {show(against_map)}")
-    if loops.rows:
-        print(f"  inter-robot loops:  {loops.rows} verified on robot1's ~/candidates: {loops.within} within "
+    if loops.count:
+        print(f"  inter-robot loops:  {loops.count} verified on robot1's ~/candidates: {loops.within} within "
               f"{LOOSE_M} m / {LOOSE_DEG:g} deg, {loops.right} right by pose_right; error median "
               f"{np.median(loops.errors_m):.3f} m / {np.median(loops.errors_deg):.2f} deg, max "
               f"{max(loops.errors_m):.3f} m / {max(loops.errors_deg):.2f} deg; {len(taken)} in the back end's graph")
@@ -502,7 +477,7 @@ def report(args: argparse.Namespace, drives: list[RobotDrive], listener: Listene
         "frames": [len(d.stamps) for d in drives], "replay_s": replay_s, "span_s": span_s, "lag_s": lag_s,
         "kept_up": kept_up, "dropped": drops, "robot2_anchored_after_s": anchored_after, "ate_m": ates,
         "odometry_ate_m": odom_ate, "merged_ate_m": merged, "robot2_against_map_m": against_map,
-        "inter_robot_loops": {"rows": loops.rows, "within": loops.within, "pose_right": loops.right,
+        "inter_robot_loops": {"rows": loops.count, "within": loops.within, "pose_right": loops.right,
                               "in_graph": len(taken), "errors_m": loops.errors_m, "errors_deg": loops.errors_deg},
         "keyframe_bytes_mean": float(np.mean(sizes)) if sizes else None, "keyframes": len(sizes),
         "backend": backend, "detectors": {n: listener.values(f"{n}: detector") for n in ROBOTS},

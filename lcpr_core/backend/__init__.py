@@ -43,11 +43,11 @@ from .graph import (
     PoseGraphBackend,
 )
 from .graph_file import GRAPH_SCHEMA, GRAPH_VERSION
-from .session import LOOP_AHEAD, LOOP_OLD, LOOP_UNKNOWN
+from .session import LOOP_AHEAD, LOOP_OLD, LOOP_UNKNOWN, MAX_SESSION_NAME
 
 __all__ = [
     "BackendConfig", "BackendStats", "GRAPH_SCHEMA", "GRAPH_VERSION", "KeyframeRule", "LoopPolicy", "OdometryNoise",
-    "PoseGraphBackend", "SessionPolicy", "chi2_quantile_6dof", "config_dict", "DEFAULT_SESSION",
+    "PoseGraphBackend", "SessionPolicy", "chi2_quantile_6dof", "config_dict", "DEFAULT_SESSION", "MAX_SESSION_NAME",
     # the solver choices, and the reasons an input is refused under (BackendError.reason, BackendStats.refused)
     "FACTORIZATIONS", "BAD_STAMP", "LOOP_AHEAD", "LOOP_COVARIANCE", "LOOP_OLD", "LOOP_POSE", "LOOP_SAME_NODE",
     "LOOP_UNKNOWN", "ODOM_ORDER", "ODOM_POSE", "UP_VECTOR", "BAD_SESSION", "LOOP_SESSION", "PRIOR_MISMATCH",

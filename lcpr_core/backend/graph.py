@@ -31,7 +31,7 @@ from .config import BackendConfig, is_real, rotation_angle, show
 from .consistency import mahalanobis_squared, path_covariances, to_world
 from .graph_file import SavedGraph, SavedSession, read_graph_file, write_graph_file
 from .placing import INTER_ACCEPTED, INTER_UNPLACED, INTER_WAITING, SessionPlacing
-from .session import DEFAULT_SESSION, LOOP_UNKNOWN, Loop, Session
+from .session import DEFAULT_SESSION, LOOP_UNKNOWN, MAX_SESSION_NAME, Loop, Session
 
 __all__ = ["DEFAULT_SESSION", "BackendStats", "PoseGraphBackend", "compose_covariance"]
 
@@ -403,9 +403,9 @@ class PoseGraphBackend(SessionPlacing):
     def _session_name(self, session: str | None) -> str:
         if session is None:
             return DEFAULT_SESSION
-        if not isinstance(session, str) or not session or len(session) > 256:
-            self._refuse(BAD_SESSION, f"session={session!r}; expected a non-empty name (str, at most 256 "
-                                      "characters)")
+        if not isinstance(session, str) or not session or len(session) > MAX_SESSION_NAME:
+            self._refuse(BAD_SESSION, f"session={session!r}; expected a non-empty name (str, at most "
+                                      f"{MAX_SESSION_NAME} characters)")
         return session
 
     def _known(self, session: str | None, what: str) -> Session:

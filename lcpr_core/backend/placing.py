@@ -77,8 +77,7 @@ class SessionPlacing:
                 self._inter[INTER_DROPPED] += excess
             return False
         free = ms if qs.anchored else qs
-        self._push(free, free.waiting, free.waiting_agree, self._waiting_of(loop, gtsam_cov,
-                                                                             free_is_child=free is qs), "waiting")
+        self._push(free, self._waiting_of(loop, gtsam_cov, free_is_child=free is qs), contradicting=False)
         return self._try_anchor(free, contradicting=False)
 
     def _contradict(self, loop: Loop, gtsam_cov: np.ndarray) -> None:
@@ -86,12 +85,13 @@ class SessionPlacing:
         qs, ms = self._key_session[loop.child], self._key_session[loop.parent]
         free = ms if qs.root or (not ms.root and ms.code > qs.code) else qs
         self._inter[INTER_CONTRADICTING] += 1
-        self._push(free, free.contradicting, free.contradicting_agree,
-                   self._waiting_of(loop, gtsam_cov, free_is_child=free is qs), "contradicting")
+        self._push(free, self._waiting_of(loop, gtsam_cov, free_is_child=free is qs), contradicting=True)
         self._try_anchor(free, contradicting=True)
 
-    def _push(self, s: Session, pool: list[Waiting], agree: list[list[bool]], item: Waiting, what: str) -> None:
-        """Add ``item`` to one of ``s``'s pools with its agreement with every member (the oldest dropped first)."""
+    def _push(self, s: Session, item: Waiting, *, contradicting: bool) -> None:
+        """Add ``item`` to ``s``'s waiting (or contradicting) loops with its agreement with every one of them (the
+        oldest dropped first, counted, beyond ``sessions.max_waiting``)."""
+        pool, agree = s.pool(contradicting=contradicting)
         if len(pool) >= self.config.sessions.max_waiting:
             pool.pop(0)
             agree.pop(0)
@@ -130,7 +130,7 @@ class SessionPlacing:
         and spread enough (and, to move an anchor, larger than the loops holding it); True when the newest
         loop is among those placing it."""
         policy = self.config.sessions
-        pool, agree = (s.contradicting, s.contradicting_agree) if contradicting else (s.waiting, s.waiting_agree)
+        pool, agree = s.pool(contradicting=contradicting)
         if len(pool) < policy.min_loops:
             return False
         support = sum(1 for lp in self._loops if self._is_between(lp, s)) if contradicting else 0
@@ -162,28 +162,18 @@ class SessionPlacing:
             kept = [lp for lp in self._loops if not self._is_between(lp, s)]
             self._inter[INTER_WITHDRAWN] += len(self._loops) - len(kept)
             self._inter[REANCHORS] += 1
-            self._loops = []
-            for lp in kept:
-                self._loops.append(lp)
+            self._loops = kept
         else:
             self._inter[ANCHORS] += 1
         chosen = {id(w) for w in members}
-        rest = [w for w in (s.contradicting if contradicting else s.waiting) if id(w) not in chosen]
-        if not contradicting:
+        rest = [w for w in s.pool(contradicting=contradicting)[0] if id(w) not in chosen]
+        if not contradicting:  # the waiting loops that disagree with the anchor: kept as evidence against it
             self._inter[INTER_CONTRADICTING] += len(rest)
-            for w in rest:  # they disagree with the anchor: kept as evidence against it
-                s.contradicting.append(w)
-        s.waiting, s.waiting_agree = [], []
-        if contradicting:
-            s.contradicting, s.contradicting_agree = [], []
-            for w in rest:
-                self._push(s, s.contradicting, s.contradicting_agree, w, "contradicting")
-        else:
-            pending, s.contradicting, s.contradicting_agree = s.contradicting, [], []
-            s.anchored = True
-            for w in pending:
-                self._push(s, s.contradicting, s.contradicting_agree, w, "contradicting")
+            rest = s.contradicting + rest
+        s.waiting, s.waiting_agree, s.contradicting, s.contradicting_agree = [], [], [], []
         s.anchored = True
+        for w in rest:  # their agreement judged again, against one another only
+            self._push(s, w, contradicting=True)
         values = est.copy()
         values[s.keys] = move @ est[s.keys]
         for w in members:

@@ -17,9 +17,11 @@ from ..errors import BackendError
 from ..geometry import interpolate_poses
 from ..growable import GrowableArray
 
-__all__ = ["DEFAULT_SESSION", "LOOP_AHEAD", "LOOP_OLD", "LOOP_UNKNOWN", "Loop", "Session", "Waiting"]
+__all__ = ["DEFAULT_SESSION", "LOOP_AHEAD", "LOOP_OLD", "LOOP_UNKNOWN", "MAX_SESSION_NAME", "Loop", "Session",
+           "Waiting"]
 
 DEFAULT_SESSION = "session"  # calls without session=, files from before sessions; the detector's default name
+MAX_SESSION_NAME = 256  # characters a session name may have
 
 LOOP_UNKNOWN = "loop stamp never seen"
 LOOP_OLD = "loop stamp older than the graph"
@@ -76,6 +78,12 @@ class Session:
     contradicting_agree: list[list[bool]] = field(default_factory=list)
     anchors: int = 0  # times it was placed (the first anchoring and every move)
     anchored_stamp: float | None = None  # its newest odometry stamp when last anchored
+
+    def pool(self, *, contradicting: bool) -> tuple[list[Waiting], list[list[bool]]]:
+        """Its waiting (or contradicting) loops and which of them agree pairwise."""
+        if contradicting:
+            return self.contradicting, self.contradicting_agree
+        return self.waiting, self.waiting_agree
 
     def node_odom(self, local: int) -> np.ndarray:
         return self.odom.view()[self.node_index[local]]
