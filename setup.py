@@ -36,6 +36,7 @@ setup(
         "pyyaml>=6",
         "rosbags>=0.10",
         "small_gicp>=1.0",  # registration for geometric verification
+        "pykdtree>=1.3",  # exact nearest neighbours within a reach, the verifier's searches (NumPy in and out)
         "opencv-python-headless>=4.8",  # Bayer demosaicing and YUV -> RGB of camera-native encodings
         "simplejpeg>=1.6",  # scaled JPEG decoding (libjpeg-turbo), the CPU camera path; OpenCV decodes where absent
         "onnxruntime>=1.17",  # the exported network (model.precision onnx / int8 / auto)

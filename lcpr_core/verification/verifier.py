@@ -34,6 +34,7 @@ from .clouds import compact_cloud
 from .config import VerifierConfig
 from .free_space import FreeSpace
 from .initial import BevMatcher, Hypothesis, polar_context, yaw_candidates
+from .neighbours import Neighbours
 
 ACCEPTED = "accepted"
 REJECT_REASONS: tuple[str, ...] = (
@@ -44,6 +45,7 @@ _ROS_ORDER = [3, 4, 5, 0, 1, 2]  # small_gicp's (rotation, translation) tangent 
 _NEIGHBOURS = 10
 _COARSE_STRIDE = 8  # every 8th point estimates the overlap of a coarse result
 V = TypeVar("V")
+_Search = tuple[np.ndarray, np.ndarray, np.ndarray]  # points in the other cloud's frame, their nearest rows, within
 _BEV_QUERY_CACHE = 24  # query BEV spectra kept per prepared cloud (~120 KiB each), then forgotten at once
 
 
@@ -62,6 +64,7 @@ class PreparedCloud:
     fine_tree: small_gicp.KdTree | None = None
     _bev: BevMatcher | None = field(default=None, repr=False)
     _free: FreeSpace | None = field(default=None, repr=False)
+    _near: Neighbours | None = field(default=None, repr=False)
     # its BEV spectra as a query, by (matcher key, yaw): its candidates' yaw guesses often repeat
     _bev_query: dict[tuple[tuple[float, float, int], float], tuple[np.ndarray, float]] = field(
         default_factory=dict, repr=False)
@@ -74,6 +77,12 @@ class PreparedCloud:
             self._bev = BevMatcher(self.bev_xyz(config), cell=config.bev_cell, extent=config.bev_extent,
                                    max_offset=config.bev_extent / 2.0)
         return self._bev
+
+    def neighbours(self) -> Neighbours:
+        """The search for its nearest point within a reach (every test's question of this cloud)."""
+        if self._near is None:
+            self._near = Neighbours(self.xyz)
+        return self._near
 
     def free_space(self) -> FreeSpace:
         """What this cloud says is empty, seen from its origin (the sensor)."""
@@ -178,6 +187,9 @@ class _Registered:
     coarse: np.ndarray  # the coarse stage's pose the fine stage started from
     constraint: float  # see _constraint
     translation_constraint: float
+    # the evidence's two sampled searches at T ((points, nearest rows, within reach): query in the match, match in
+    # the query) when sampled as the free-space test samples them (overlap_points), for it to reuse
+    searches: tuple[_Search, _Search] | None = None
 
 
 class GeometricVerifier:
@@ -263,7 +275,7 @@ class GeometricVerifier:
         best = self._fine(query, match, coarse[0][1], coarse[0][2])
         verdict = self._judge(best)
         if verdict.accepted and cfg.max_contradiction < 1.0:
-            contradiction = self.contradiction(query, match, best.T)
+            contradiction = self.contradiction(query, match, best.T, searches=best.searches)
             verdict = replace(verdict, contradiction=contradiction)
             if contradiction > cfg.max_contradiction:
                 verdict = replace(verdict, accepted=False, reason="contradicted")
@@ -274,18 +286,25 @@ class GeometricVerifier:
                 verdict = replace(verdict, accepted=False, reason="ambiguous")
         return replace(verdict, coarse_fitness=early, seconds=time.perf_counter() - tic)
 
-    def contradiction(self, query: PreparedCloud, match: PreparedCloud, match_T_query: np.ndarray) -> float:
+    def contradiction(self, query: PreparedCloud, match: PreparedCloud, match_T_query: np.ndarray, *,
+                      searches: tuple[_Search, _Search] | None = None) -> float:
         """The larger of the two clouds' shares of points that lie in the other's free space at the pose.
 
         Each share is taken over an evenly spaced sample of about ``overlap_points`` points, among those
         falling in directions the other sensor saw; a point within ``inlier_distance`` of the other's points
-        lies on a surface both saw and never counts against the pair (see :mod:`.free_space`).
+        lies on a surface both saw and never counts against the pair (see :mod:`.free_space`). ``searches``:
+        those samples' neighbour searches at this pose, already made by the evidence (query side, match side).
         """
         cfg = self.config
+        if searches is None:
+            searches = tuple(  # type: ignore[assignment]  # two of them
+                (points, *_near(points, seen_by, cfg)) for seen_by, points in (
+                    (match, transform_points(query.xyz[::_stride(len(query), cfg.overlap_points)], match_T_query)),
+                    (query, transform_points(match.xyz[::_stride(len(match), cfg.overlap_points)],
+                                             np.linalg.inv(match_T_query)))))
+        assert searches is not None
         shares = []
-        for seen_by, cloud, T in ((match, query, match_T_query), (query, match, np.linalg.inv(match_T_query))):
-            points = transform_points(cloud.xyz[::_stride(len(cloud), cfg.overlap_points)], T)
-            _, near = _near(points, seen_by, cfg)
+        for seen_by, (points, _, near) in zip((match, query), searches, strict=True):
             bad, seen = seen_by.free_space().contradicting(points, excused=near)
             shares.append(bad / seen if seen else 0.0)
         return max(shares)
@@ -364,29 +383,30 @@ class GeometricVerifier:
                                 registration_type=cfg.registration, num_threads=cfg.num_threads,
                                 max_iterations=cfg.max_iterations, max_correspondence_distance=cfg.fine_distance)
         T = np.asarray(fine.T_target_source, np.float64)
-        fitness, rmse, constraint = 0.0, math.inf, (0.0, 0.0)
+        fitness, rmse, constraint, searches = 0.0, math.inf, (0.0, 0.0), None
         if np.isfinite(T).all():
-            fitness, rmse, constraint = self._evidence(query, match, T, cfg.overlap_points)
+            fitness, rmse, constraint, searches = self._evidence(query, match, T, cfg.overlap_points)
             sampled = max(_stride(len(query), cfg.overlap_points), _stride(len(match), cfg.overlap_points)) > 1
             if sampled and abs(fitness - cfg.min_fitness) < cfg.overlap_recheck:  # borderline: read every point
-                fitness, rmse, constraint = self._evidence(query, match, T, 0)
+                fitness, rmse, constraint, _ = self._evidence(query, match, T, 0)
         return _Registered(T, fitness, rmse, np.asarray(fine.H, np.float64), float(fine.error), int(fine.num_inliers),
-                           T0, start, min(constraint), constraint[0])
+                           T0, start, min(constraint), constraint[0], searches)
 
     def _evidence(self, query: PreparedCloud, match: PreparedCloud, T: np.ndarray, points: int
-                  ) -> tuple[float, float, tuple[float, float]]:
-        """(overlap, RMSE, (translation, rotation) constraint) at ``T`` from samples of about ``points`` points
-        (0: every point)."""
+                  ) -> tuple[float, float, tuple[float, float], tuple[_Search, _Search]]:
+        """(overlap, RMSE, (translation, rotation) constraint, the two searches) at ``T`` from samples of about
+        ``points`` points (0: every point)."""
         cfg = self.config
         q_in_m = transform_points(query.xyz[::_stride(len(query), points)], T)
-        idx, near = _near(q_in_m, match, cfg)  # one search: the overlap and the constraint share it
-        fitness, rmse = self._overlap(query, match, T, points=points, query_side=(q_in_m, idx, near))
-        return fitness, rmse, _constraint(q_in_m[near], match.normals[idx[near]])
+        query_side = (q_in_m, *_near(q_in_m, match, cfg))  # one search: the overlap and the constraint share it
+        fitness, rmse, match_side = self._overlap(query, match, T, points=points, query_side=query_side)
+        _, idx, near = query_side
+        return fitness, rmse, _constraint(q_in_m[near], match.normals[idx[near]]), (query_side, match_side)
 
     def _overlap(self, query: PreparedCloud, match: PreparedCloud, T: np.ndarray, *, points: int = 0,
-                 least_stride: int = 1, query_side: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-                 ) -> tuple[float, float]:
-        """(overlap, RMSE) after alignment; overlap = the mean of both directions' inlier shares.
+                 least_stride: int = 1, query_side: _Search | None = None) -> tuple[float, float, _Search]:
+        """(overlap, RMSE, the match side's search) after alignment; overlap = the mean of both directions'
+        inlier shares.
 
         A point is an inlier when its nearest neighbour in the other cloud is within
         ``inlier_distance`` and it lies within ``plane_distance`` of that neighbour's local
@@ -402,10 +422,11 @@ class GeometricVerifier:
             q_in_m = transform_points(query.xyz[::_stride(len(query), points, least_stride)], T)
             query_side = (q_in_m, *_near(q_in_m, match, cfg))
         m_in_q = transform_points(match.xyz[::_stride(len(match), points, least_stride)], np.linalg.inv(T))
+        match_side = (m_in_q, *_near(m_in_q, query, cfg))
         share_q, d_q = _inliers(*query_side, match, cfg)
-        share_m, _ = _inliers(m_in_q, *_near(m_in_q, query, cfg), query, cfg)
+        share_m, _ = _inliers(*match_side, query, cfg)
         rmse = float(np.sqrt(np.mean(d_q ** 2))) if len(d_q) else math.inf
-        return 0.5 * (share_q + share_m), rmse
+        return 0.5 * (share_q + share_m), rmse, match_side
 
     def _judge(self, best: _Registered) -> Verification:
         cfg = self.config
@@ -461,10 +482,7 @@ def _stride(count: int, points: int, least: int = 1) -> int:
 
 def _near(points: np.ndarray, target: PreparedCloud, cfg: VerifierConfig) -> tuple[np.ndarray, np.ndarray]:
     """(nearest target row of each point, whether it lies within ``inlier_distance``)."""
-    assert target.tree is not None  # a cloud without a tree (too few points) is refused before registration
-    idx, d2 = target.tree.batch_nearest_neighbor_search(points, num_threads=cfg.num_threads)
-    idx, d2 = np.asarray(idx, np.int64), np.asarray(d2, np.float64)
-    return idx, (idx >= 0) & (d2 <= cfg.inlier_distance ** 2)
+    return target.neighbours().nearest(points, reach=cfg.inlier_distance, threads=cfg.num_threads)
 
 
 def inlier_share(points: np.ndarray, target: PreparedCloud, config: VerifierConfig) -> float:
