@@ -62,6 +62,8 @@ class PreparedCloud:
     coarse_tree: small_gicp.KdTree | None = None
     fine: small_gicp.PointCloud | None = None  # about verify.fine_points points (or ``cloud``), for the fine stage
     fine_tree: small_gicp.KdTree | None = None
+    # why no pair with this cloud can be verified, found while preparing it ("too few points", "degenerate"); ""
+    refusal: str = ""
     _bev: BevMatcher | None = field(default=None, repr=False)
     _free: FreeSpace | None = field(default=None, repr=False)
     _near: Neighbours | None = field(default=None, repr=False)
@@ -208,8 +210,10 @@ class GeometricVerifier:
         xyz = np.ascontiguousarray(np.asarray(compact_xyz, np.float64).reshape(-1, 3))
         cfg = self.config
         threads = cfg.num_threads
-        if len(xyz) < max(cfg.min_points, _NEIGHBOURS):
-            return PreparedCloud(xyz=xyz, cloud=None, tree=None, context=polar_context(xyz), normals=np.zeros_like(xyz))
+        refusal = _refusal(xyz, cfg)
+        if refusal:  # seen before any search: no tree, no normals, no registration
+            return PreparedCloud(xyz=xyz, cloud=None, tree=None, context=polar_context(xyz), normals=np.zeros_like(xyz),
+                                 refusal=refusal)
         cloud = small_gicp.PointCloud(xyz)
         tree = small_gicp.KdTree(cloud, num_threads=threads)
         resample = len(xyz) > 1.4 * cfg.fine_points
@@ -222,6 +226,9 @@ class GeometricVerifier:
         if resample:
             fine, fine_tree = self._resampled(cloud, cfg.cloud.voxel, cfg.fine_points)
         coarse, coarse_tree = self._resampled(fine, cfg.coarse_voxel, cfg.coarse_points)
+        if min(coarse.size(), fine.size()) < _NEIGHBOURS:  # a stage's clouds too small for their covariances
+            return PreparedCloud(xyz=xyz, cloud=None, tree=None, context=polar_context(xyz), normals=normals,
+                                 refusal="too few points")
         return PreparedCloud(xyz=xyz, cloud=cloud, tree=tree, context=polar_context(xyz), normals=normals,
                              coarse=coarse, coarse_tree=coarse_tree, fine=fine, fine_tree=fine_tree)
 
@@ -254,8 +261,11 @@ class GeometricVerifier:
                         initial_guess: np.ndarray | None = None) -> Verification:
         tic = time.perf_counter()
         cfg = self.config
-        if min(len(query), len(match)) < cfg.min_points or query.tree is None or match.tree is None:
-            return Verification(False, "too few points", np.eye(4), 0.0, seconds=time.perf_counter() - tic)
+        refusal = query.refusal or match.refusal  # the cheapest stage: seen while preparing either cloud
+        if not refusal and (min(len(query), len(match)) < cfg.min_points or query.tree is None or match.tree is None):
+            refusal = "too few points"  # a cloud prepared under other settings
+        if refusal:
+            return Verification(False, refusal, np.eye(4), 0.0, seconds=time.perf_counter() - tic)
         if initial_guess is not None:
             starts = [_rigid(initial_guess)]
         else:
@@ -468,6 +478,20 @@ class GeometricVerifier:
         sigma2 = np.diag(cov).copy()
         bump = np.maximum(floor - sigma2, 0.0)
         return cov + np.diag(bump)
+
+
+def _refusal(xyz: np.ndarray, cfg: VerifierConfig) -> str:
+    """Why no registration of this cloud (M x 3) can be accepted, seen before any search; "" when none.
+
+    Fewer than ``min_points`` points: "too few points". All of them within a slab a quarter of
+    ``plane_distance`` thick (the smallest principal spread of a plane, a line or a point): "degenerate",
+    as the point-to-plane constraint would find after registering it; no scan of a place is that flat.
+    """
+    if len(xyz) < max(cfg.min_points, _NEIGHBOURS):
+        return "too few points"
+    centred = xyz - xyz.mean(axis=0)
+    spread = float(np.sqrt(max(np.linalg.eigvalsh(centred.T @ centred / len(xyz))[0], 0.0)))
+    return "degenerate" if spread < cfg.plane_distance / 4.0 else ""
 
 
 def _distance(a: np.ndarray, b: np.ndarray) -> float:
