@@ -23,7 +23,7 @@ threads and the worker processes'; less sensitive to other jobs on a shared mach
 ``--save FILE`` writes every verdict (decision, reason, fitness, pose); ``--compare FILE`` checks this
 run's verdicts against such a file, candidate for candidate (e.g. before and after a change to the
 verifier), prints what differs and exits with status 1 when a decision or a reason differs or a pose
-moved more than 1 mm / 0.01 deg.
+moved more than 1 mm / 0.01 deg (:mod:`lcpr_offline.verdicts`).
 
 ``--profile`` also prints where the time goes: per keyframe of the one-by-one pass, the wall and CPU time of
 each stage (:data:`STAGES`), measured by wrapping the methods of the verifier instance for that pass only
@@ -37,7 +37,6 @@ no error only with its pose right.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -49,8 +48,6 @@ import numpy as np
 
 from lcpr_common.cli import tool_main
 
-POSE_TOLERANCE_M = 1e-3  # --compare: a pose that moved more than this (or the angle below) is a difference
-POSE_TOLERANCE_DEG = 1e-2
 POSE_OK_M, POSE_OK_DEG = 0.5, 3.0  # an accepted pair's pose is right within these of the drive's poses
 # --profile: each stage and the GeometricVerifier methods whose time it is charged; "other" is the rest of the pass
 STAGE_METHODS: dict[str, tuple[str, ...]] = {
@@ -98,10 +95,10 @@ def main(argv: list[str] | None = None) -> int:
 
     from tqdm import tqdm
 
-    from lcpr_core.atomic import write_atomic
     from lcpr_core.timing import cpu_model
     from lcpr_core.verification import GeometricVerifier, Verification, VerifierConfig
     from lcpr_core.verification.processes import CloudRef, VerifierProcesses
+    from lcpr_offline import verdicts as verdict_file
     from lcpr_offline.verification_pairs import SyntheticLidar, synthetic_pairs
 
     seq = SyntheticLidar("nuscenes", 3, args.frames)
@@ -169,7 +166,8 @@ def main(argv: list[str] | None = None) -> int:
                 for k, m in enumerate(candidates):
                     alone = verifier.verify_prepared(query, verifier.prepare(compact[m]))
                     for name, vs in found.items():
-                        mismatches += _differences(f"{q}-{m} ({name} vs uncached)", _record(vs[k]), _record(alone))
+                        mismatches += verdict_file.differences(f"{q}-{m} ({name} vs uncached)",
+                                                               verdict_file.record(vs[k]), verdict_file.record(alone))
                     verdicts[q, m] = alone
                 uncached.append(time.perf_counter() - tic)
         if processes is not None:
@@ -197,17 +195,13 @@ def main(argv: list[str] | None = None) -> int:
           f"with a wrong pose: {len(wrong)}")
     for line in wrong:
         print("    " + line)
-    records = {f"{q}-{m}": _record(v) for (q, m), v in verdicts.items()}
+    records = {f"{q}-{m}": verdict_file.record(v) for (q, m), v in verdicts.items()}
     if args.save is not None:
-        write_atomic(args.save, lambda path: path.write_text(json.dumps(records, indent=1) + "\n"))
+        verdict_file.save(args.save, records)
         print(f"  verdicts written to {args.save}")
     if args.compare is not None:
-        reference = json.loads(args.compare.read_text())
-        if set(reference) != set(records):
-            mismatches.append(f"pairs differ from {args.compare}: {len(set(reference) ^ set(records))} "
-                              "not in both (run with the same --frames/--queries/--candidates)")
-        for key in sorted(set(reference) & set(records)):
-            mismatches += _differences(f"{key} (vs {args.compare})", reference[key], records[key])
+        mismatches += verdict_file.compare(args.compare, records,
+                                           same_run="run with the same --frames/--queries/--candidates")
     print(f"  verdicts compared: {len(mismatches)} differences")
     for line in mismatches[:20]:
         print("    " + line)
@@ -341,31 +335,6 @@ def _peak_rss_mib(pid: int) -> float:
     except OSError:
         pass
     return float("nan")
-
-
-def _record(v: Any) -> dict[str, Any]:
-    """What --save keeps of a Verification: decision, reason, fitness and the 4 x 4 pose."""
-    return {"accepted": bool(v.accepted), "reason": v.reason, "fitness": float(v.fitness),
-            "match_T_query": np.asarray(v.match_T_query, np.float64).tolist()}
-
-
-def _differences(name: str, old: dict[str, Any], new: dict[str, Any]) -> list[str]:
-    """What differs between two verdict records (empty when the same verdict and pose)."""
-    from lcpr_core.geometry import rotation_angle_deg
-
-    out = []
-    if (old["accepted"], old["reason"]) != (new["accepted"], new["reason"]):
-        out.append(f"{name}: {old['reason']} -> {new['reason']} (fitness {old['fitness']:.4f} -> "
-                   f"{new['fitness']:.4f})")
-    a, b = np.asarray(old["match_T_query"]), np.asarray(new["match_T_query"])
-    if np.isfinite(a).all() and np.isfinite(b).all():
-        delta = np.linalg.inv(a) @ b
-        moved_m, moved_deg = float(np.linalg.norm(delta[:3, 3])), float(rotation_angle_deg(delta[:3, :3]))
-        if moved_m > POSE_TOLERANCE_M or moved_deg > POSE_TOLERANCE_DEG:
-            out.append(f"{name}: pose moved {moved_m:.4f} m, {moved_deg:.4f} deg")
-    elif np.isfinite(a).all() != np.isfinite(b).all():
-        out.append(f"{name}: pose finite {np.isfinite(a).all()} -> {np.isfinite(b).all()}")
-    return out
 
 
 def _setting(item: str) -> tuple[str, int | float]:

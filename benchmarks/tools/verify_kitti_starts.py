@@ -1,6 +1,7 @@
 """The verifier with no initial guess on the four raw KITTI-00 scans, turned any way: does it find the pose?
 
     python benchmarks/tools/verify_kitti_starts.py [--trials 10] [--seed 0] [--reference registered] [--json FILE]
+                                                   [--save VERDICTS.json] [--compare VERDICTS.json]
 
 Every ordered pair of the scans 000000, 000001, 000005 and 000015 of ``../shared/data/kitti00``
 (0.7 to 12 m apart), the query turned by ``--trials`` seeded random yaws in [0, 360) and shifted by up
@@ -16,6 +17,11 @@ dense registration of the raw scans (``--reference registered``, see
 off what the scans say); ``--reference poses`` takes poses.txt as it is.
 
 Runs in well under a minute on two cores (120 cases); times are wall seconds of ``verify_prepared``.
+
+``--save FILE`` writes every verdict (decision, reason, fitness, pose; named ``query-match/trial/blind`` and
+``.../truth``, the trial counted within its pair of scans); ``--compare FILE`` checks this run's against such
+a file (e.g. before and after a change to the verifier), prints what differs and exits with status 1 when a
+decision or a reason differs or a pose moved more than 1 mm / 0.01 deg (:mod:`lcpr_offline.verdicts`).
 """
 from __future__ import annotations
 
@@ -24,11 +30,16 @@ import json
 import sys
 from collections import Counter
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from lcpr_common.cli import tool_main
+
+if TYPE_CHECKING:  # the package (and torch with it) is imported after the arguments are read
+    from lcpr_core.verification import VerifierConfig
+
+GUESSES = ("blind", "truth")  # the order kitti_start_trials verifies each case in
 
 
 def summary(rows: list[dict[str, Any]], name: str) -> dict[str, Any]:
@@ -60,16 +71,21 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", type=Path, default=None, help="also write the summary and every case here")
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                    help="override a numeric VerifierConfig field, e.g. fine_points=2048 (repeatable)")
+    p.add_argument("--save", type=Path, default=None, help="write every verdict to this JSON file")
+    p.add_argument("--compare", type=Path, default=None, help="compare the verdicts with a --save file")
     args = p.parse_args(argv)
+    if args.compare is not None and not args.compare.is_file():
+        raise SystemExit(f"--compare {args.compare}: no such file; accepted: a file written by --save")
 
     from lcpr_core.errors import VerificationError
     from lcpr_core.timing import cpu_model
-    from lcpr_core.verification import GeometricVerifier, VerifierConfig
+    from lcpr_core.verification import VerifierConfig
     from lcpr_core.verification.config import with_settings
+    from lcpr_offline import verdicts as verdict_file
     from lcpr_offline.kitti_scans import kitti_start_trials
 
     try:
-        verifier = GeometricVerifier(with_settings(VerifierConfig(), args.set))
+        verifier = recording_verifier(with_settings(VerifierConfig(), args.set))
     except VerificationError as err:
         raise SystemExit(f"--set: {err}") from err
     rows = kitti_start_trials(verifier, trials=args.trials, seed=args.seed, folder=args.kitti,
@@ -77,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"CPU: {cpu_model()}, verifier threads {verifier.config.num_threads}; {len(rows)} cases "
           f"({args.trials} turns per ordered pair of scans, seed {args.seed}, reference {args.reference})")
     out: dict[str, Any] = {}
-    for name in ("blind", "truth"):
+    for name in GUESSES:
         s = summary(rows, name)
         out[name] = s
         print(f"\n{name:5s}: right {s['right']:.2f}  pose found (accepted or not) {s['pose_ok']:.2f}  "
@@ -102,7 +118,51 @@ def main(argv: list[str] | None = None) -> int:
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({"summary": out, "cases": rows}, indent=2, default=float))
-    return 0
+    return verdict_file.keep(_named(rows, verifier.verdicts), save_to=args.save, compare_with=args.compare,
+                             same_run="run with the same --trials/--seed/--reference", indent="")
+
+
+def recording_verifier(config: VerifierConfig) -> Any:
+    """A GeometricVerifier that also keeps, in order, every verdict its callers get from ``verify_prepared``
+    (``.verdicts``; the calls it makes itself are left out): kitti_start_trials returns no poses."""
+    from lcpr_core.verification import GeometricVerifier, Verification
+
+    class Recording(GeometricVerifier):
+        def __init__(self, config: VerifierConfig) -> None:
+            super().__init__(config)
+            self.verdicts: list[Verification] = []
+            self._depth = 0
+
+        def verify_prepared(self, *args: Any, **kwargs: Any) -> Verification:
+            self._depth += 1
+            try:
+                v = super().verify_prepared(*args, **kwargs)
+            finally:
+                self._depth -= 1
+            if self._depth == 0:
+                self.verdicts.append(v)
+            return v
+
+    return Recording(config)
+
+
+def _named(rows: list[dict[str, Any]], verdicts: list[Any]) -> dict[str, Any]:
+    """The verdict records by name, ``query-match/trial/guess``: each row's cases were verified in GUESSES' order."""
+    from lcpr_offline.verdicts import record
+
+    if len(verdicts) != len(GUESSES) * len(rows):
+        raise AssertionError(f"{len(verdicts)} verdicts for {len(rows)} cases; expected {len(GUESSES)} a case")
+    out: dict[str, Any] = {}
+    trials: Counter[tuple[int, int]] = Counter()
+    for k, row in enumerate(rows):
+        pair = (int(row["query"]), int(row["match"]))
+        for g, guess in enumerate(GUESSES):
+            v = verdicts[len(GUESSES) * k + g]
+            if (bool(v.accepted), str(v.reason)) != (bool(row[f"{guess}_accepted"]), str(row[f"{guess}_reason"])):
+                raise AssertionError(f"case {k} ({guess}): the verdict kept is not the row's")
+            out[f"{pair[0]}-{pair[1]}/{trials[pair]}/{guess}"] = record(v)
+        trials[pair] += 1
+    return out
 
 
 if __name__ == "__main__":

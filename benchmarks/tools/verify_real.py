@@ -1,6 +1,7 @@
 """Geometric verification on real Livox Avia keyframes (../shared/data/livox_hku), against the SLAM poses.
 
     python benchmarks/tools/verify_real.py [--far 3000] [--hard 3] [--submap off|on|auto] [--out out/verify_real]
+                                           [--save VERDICTS.json] [--compare VERDICTS.json]
 
 Pairs (:mod:`lcpr_offline.verification_pairs`; poses: the folders' optimized_poses.txt, a SLAM system's estimates):
 - true revisits: < 3 m apart, > 30 s apart, relative rotation < 30 deg, in ``walk_loop``
@@ -30,6 +31,11 @@ and scan-to-scan registration agrees with the odometry to a few cm.
 
 Prints the acceptance rates, pose errors and verification time (median, on this CPU)
 and writes every pair's evidence to ``OUT/pairs.npz``. Nothing here chooses a threshold.
+
+``--save FILE`` writes every pair's verdict (decision, reason, fitness, pose; named ``set/kind/query-match``);
+``--compare FILE`` checks this run's against such a file (e.g. before and after a change to the verifier),
+prints what differs and exits with status 1 when a decision or a reason differs or a pose moved more than
+1 mm / 0.01 deg (:mod:`lcpr_offline.verdicts`).
 """
 from __future__ import annotations
 
@@ -46,6 +52,7 @@ from lcpr_common.cli import tool_main
 
 if TYPE_CHECKING:  # the package (and torch with it) is imported after the arguments are read
     from lcpr_core.verification import GeometricVerifier, PreparedCloud, SubmapConfig
+    from lcpr_offline.verdicts import Record
     from lcpr_offline.verification_pairs import PreparedScans
     from msg_tools.convert.scan_folder import ScanFolder
 
@@ -112,10 +119,12 @@ class PairClouds:
 
 
 def run_pairs(verifier: GeometricVerifier, seq: ScanFolder, pairs: np.ndarray, clouds: PairClouds, desc: str,
-              odom: ScanFolder) -> dict[str, np.ndarray]:
-    """Verify every pair; per pair the verdict, its evidence and the pose error against both pose files."""
+              odom: ScanFolder, *, verdicts: dict[str, Record] | None = None) -> dict[str, np.ndarray]:
+    """Verify every pair; per pair the verdict, its evidence and the pose error against both pose files.
+    ``verdicts``: also keep each pair's verdict record there, named ``desc/query-match``."""
     from tqdm import tqdm
 
+    from lcpr_offline.verdicts import record
     from lcpr_offline.verification_pairs import pose_error
 
     rows: dict[str, list] = {k: [] for k in ("accepted", "reason", "fitness", "rmse", "corr_m", "corr_deg",
@@ -123,6 +132,8 @@ def run_pairs(verifier: GeometricVerifier, seq: ScanFolder, pairs: np.ndarray, c
                                              "seconds")}
     for q, m in tqdm(pairs, desc=desc, unit="pair"):
         v = verifier.verify_prepared(*clouds.pair(int(q), int(m)))
+        if verdicts is not None:
+            verdicts[f"{desc}/{q}-{m}"] = record(v)
         truth = np.linalg.inv(seq.poses[m]) @ seq.poses[q]
         err_m, err_deg = pose_error(v.match_T_query, truth)
         odom_m, odom_deg = pose_error(v.match_T_query, np.linalg.inv(odom.poses[m]) @ odom.poses[q])
@@ -181,12 +192,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                    help="override a numeric VerifierConfig field, e.g. fine_points=2048 (repeatable)")
     p.add_argument("--out", type=Path, default=Path("out/verify_real"))
+    p.add_argument("--save", type=Path, default=None, help="write every pair's verdict to this JSON file")
+    p.add_argument("--compare", type=Path, default=None, help="compare the verdicts with a --save file")
     args = p.parse_args(argv)
+    if args.compare is not None and not args.compare.is_file():
+        raise SystemExit(f"--compare {args.compare}: no such file; accepted: a file written by --save")
     from lcpr_common.shared_data import shared_path
     from lcpr_core.errors import VerificationError
     from lcpr_core.timing import cpu_model
     from lcpr_core.verification import GeometricVerifier, SubmapConfig, VerifierConfig
     from lcpr_core.verification.config import with_settings
+    from lcpr_offline import verdicts as verdict_file
     from lcpr_offline.verification_pairs import PreparedScans, far_pairs, split_at, split_pairs, true_pairs
     from msg_tools.convert.scan_folder import ScanFolder
 
@@ -201,6 +217,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{verifier.config.num_threads}; {submap}; settings {args.set or 'the defaults'}")
     results: dict[str, Any] = {}  # Any: np.savez's keywords also name its own allow_pickle flag
     summary = {}
+    records: dict[str, verdict_file.Record] = {}  # the verdicts by pair name
     for name in (args.only,) if args.only else SETS:
         seq = ScanFolder(data / name)
         odom = ScanFolder(data / name, poses_file="odom_poses.txt")
@@ -216,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
             sets["true_all"] = true_pairs(seq)
         for kind, pairs in sets.items():
             key = f"{name}/{kind}"
-            r = run_pairs(verifier, seq, pairs, clouds, key, odom)
+            r = run_pairs(verifier, seq, pairs, clouds, key, odom, verdicts=records)
             results.update({f"{key}/{k}": v for k, v in r.items()})
             results[f"{key}/pairs"] = pairs
             summary[key] = summarise(key, r, true=kind.startswith("true"), posed=kind == "mid")
@@ -228,7 +245,8 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     np.savez(args.out / "pairs.npz", **results)
     (args.out / "summary.json").write_text(json.dumps(summary, indent=2))
-    return 0
+    return verdict_file.keep(records, save_to=args.save, compare_with=args.compare,
+                             same_run="run with the same --split/--far/--hard/--mid/--seed/--only")
 
 
 if __name__ == "__main__":

@@ -110,6 +110,8 @@ class VerifiedLoops:
     pose_graph_note: str = ""  # why there is no pose graph
     base_T_lidar: np.ndarray | None = None  # the extrinsic the ground truth LiDAR poses used
     base_T_lidar_source: str = ""  # where it came from
+    # every candidate's verdict by "query-match" keyframe ids (lcpr_offline.verdicts records; not in to_dict)
+    verdicts: dict[str, dict[str, Any]] = field(default_factory=dict, repr=False)
 
     @property
     def max_f1(self) -> float | None:
