@@ -26,6 +26,12 @@ another odometry; the bag's odometry stays the ground truth. The KISS-ICP odomet
 candidate are then replayed through the online back end (:mod:`lcpr_core.backend.replay`): ATE RMSE before
 and after against the bag's odometry (``report.backend``) and backend.png. The default, ``"bag"``, hands
 the detector the bag's odometry.
+
+Throughput: the network describes a batch on a thread of its own while the batch before is matched and
+stored, and verification runs on ``workers`` processes (``lcpr_eval --workers``; default: every core this
+process may run on) a few keyframes behind: a keyframe's pairs and clouds are made as it is stored and
+its verdicts collected later (:meth:`LoopDetector.finish_verification`), the same verdicts as the node's
+immediate verification. ``report.stages`` says where the run's time went.
 """
 from __future__ import annotations
 
@@ -34,7 +40,7 @@ import os
 import queue
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -59,6 +65,7 @@ from lcpr_core.errors import InvalidValueError, LcprError
 from lcpr_core.evaluation import (
     EvaluationReport,
     MethodRun,
+    StageTimes,
     VerifiedLoops,
     evaluate_method,
     evaluate_verified,
@@ -80,6 +87,8 @@ from msg_tools.errors import MsgToolsError
 from msg_tools.frames import KITTI_TOPICS, NUSCENES_TOPICS, SensorFrame, Topics
 from msg_tools.transforms import BASE_FRAME
 
+from .verdicts import candidate_record
+
 #: msg_tools_scans2bag's layout: one LiDAR and its poses, no cameras.
 SCAN_TOPICS = dataclasses.replace(NUSCENES_TOPICS, cameras=(), camera_info=(), depth=(), labels=(), lidar="/points",
                                   odom="/odom")
@@ -94,6 +103,10 @@ ODOMETRY_SOURCES = ("bag", "kiss-icp")  # what gives the detector its poses
 AUTO_BATCH = 0  # EvalOptions.batch: 1 frame per network call on the CPU, CUDA_BATCH on a GPU
 #: frames per network call on a GPU by default: one CUDA graph of that batch, inputs decoded together
 CUDA_BATCH = 16
+MAX_WORKERS = 64  # verification worker processes at most (verify.processes' range)
+#: keyframes whose verification may still be running, per worker, before storing waits for the oldest: enough to
+#: keep every worker busy through a keyframe with many candidates, few enough to hold little memory
+VERIFY_AHEAD_PER_WORKER = 3
 
 
 @dataclass(frozen=True)
@@ -123,10 +136,17 @@ class EvalOptions:
     batch: int = AUTO_BATCH
     lidar_only: bool = False  # no cameras read: every frame described with all camera slots empty
     odometry: str = "bag"  # the detector's poses: the bag's odometry, or "kiss-icp" on its clouds (then the back end)
+    # verification worker processes (verify.processes as run; overlapping the network and the map); None: one per
+    # core this process may run on; 0: verified in this process, each keyframe as it is stored
+    workers: int | None = None
 
     def __post_init__(self) -> None:
         if self.odometry not in ODOMETRY_SOURCES:
             raise InvalidValueError(f"odometry={self.odometry!r}; accepted: {', '.join(ODOMETRY_SOURCES)}")
+        if self.workers is not None and (isinstance(self.workers, bool) or not isinstance(self.workers, int)
+                                         or not 0 <= self.workers <= MAX_WORKERS):
+            raise InvalidValueError(f"workers={self.workers!r}; accepted: 0..{MAX_WORKERS} verification worker "
+                                    "processes (0: verified in this process), or None for one per core")
         MatchConfig(max_distance=self.max_distance)  # a distance >= 0 or AUTO_DISTANCE, refused as the node does
         for name in ("exclude_recent_s", "sc_max_distance", "slop", "limit", "warmup", "drift_seed"):
             value = getattr(self, name)
@@ -159,6 +179,7 @@ class _RunRecord:
     map_ids: list[int] = field(default_factory=list)
     poses: list[np.ndarray] = field(default_factory=list)  # 4 x 4 world_T_base, NaN where unknown
     verified: list[Candidate | None] = field(default_factory=list)  # the keyframe's verified loop (Result.loop)
+    verdicts: dict[str, dict[str, Any]] = field(default_factory=dict)  # every candidate's, by "query-match" ids
     lidar_frame: str | None = None  # frame id of the clouds (the first keyframe's)
     reasons: Counter = field(default_factory=Counter)
     degraded: int = 0
@@ -288,6 +309,8 @@ def evaluate_bag(
     """Run the detector (and the baseline) over a bag and evaluate both; nothing is written."""
     opts = options if options is not None else EvalOptions()
     start = time.perf_counter()
+    workers = verification_workers(opts)
+    opts = dataclasses.replace(opts, verify=dataclasses.replace(opts.verify, processes=workers))  # as run
     batch = frames_per_call(opts)
     stream = read_frames(bag, topics=opts.topics, slop=opts.slop, decode_compressed=False,
                          min_cameras=0 if opts.lidar_only else 1)
@@ -307,17 +330,23 @@ def evaluate_bag(
         if opts.odometry == "kiss-icp":
             record.odometry = _KissRun(bag, opts)
         record.detector.describer.reserve(batch)  # a GPU captures a graph of that batch
+        pool = record.detector.verification_processes()  # its workers started before the clock does
         setup = time.perf_counter() - start
+        cpu = time.process_time()
         frames = Prefetched(stream, depth=2 * batch + 4)  # the bag is read while the detector works
-        with _Pipeline(record, bar, overlap=record.odometry is None) as pipeline:
+        ahead = VERIFY_AHEAD_PER_WORKER * workers if pool is not None else 0
+        with _Pipeline(record, bar, overlap=record.odometry is None, verify_ahead=ahead) as pipeline:
             pending: list[SensorFrame] = []
+            tic = time.perf_counter()
             for frame in frames:
+                pipeline.stages.read_wait += time.perf_counter() - tic
                 if opts.limit and record.frames + pipeline.queued + len(pending) >= opts.limit:
                     break
                 pending.append(frame)
                 if len(pending) >= batch:
                     pipeline.add(pending)
                     pending = []
+                tic = time.perf_counter()
             if pending:
                 pipeline.add(pending)
     finally:
@@ -326,6 +355,10 @@ def evaluate_bag(
         stream.close()
         bar.close()
     detect = time.perf_counter() - start - setup
+    stages = pipeline.stages
+    stages.run, stages.workers = detect, workers if pool is not None else 0
+    stages.cpu, stages.cores = time.process_time() - cpu, len(os.sched_getaffinity(0))
+    stages.verify_busy, stages.verify_cpu = pipeline.verify_seconds()
     stats = dataclasses.asdict(stream.stats)
     counts = {
         "frames": record.frames, "frames_in_bag": len(stream), "keyframes": len(record.stamps),
@@ -341,7 +374,18 @@ def evaluate_bag(
         report.backend = record.odometry.evaluate()
         report.counts["backend"] = "run" if report.backend is not None else "not run (no frame with a cloud and a pose)"
     report.wall_time_s, report.setup_time_s, report.detect_time_s = time.perf_counter() - start, setup, detect
+    report.stages = stages
     return report
+
+
+def verification_workers(opts: EvalOptions) -> int:
+    """``opts.workers``, or for None one per core this process may run on (its CPU affinity), at most
+    MAX_WORKERS; 0 with verification off."""
+    if not opts.verify.enabled:
+        return 0
+    if opts.workers is not None:
+        return opts.workers
+    return max(1, min(len(os.sched_getaffinity(0)), MAX_WORKERS))
 
 
 def frames_per_call(opts: EvalOptions) -> int:
@@ -397,49 +441,100 @@ def _verified(record: _RunRecord, opts: EvalOptions, report: EvaluationReport,
         except LcprError as err:  # gtsam missing, or a pose it cannot use
             note = f"not run: {err}"
     return dataclasses.replace(result, pose_graph=proof, pose_graph_note=note, base_T_lidar=base_T_lidar,
-                               base_T_lidar_source=source)
+                               base_T_lidar_source=source, verdicts=record.verdicts)
 
 
 class _Pipeline:
     """Batches of frames through the detector: each batch's keyframes described (one network call) on a worker
     thread while the batch before is matched and stored here, in order (``overlap``; else one after the other).
-    A GPU then decodes and runs the network for the next batch while the CPU searches the map."""
+    A GPU then decodes and runs the network for the next batch while the CPU searches the map. With
+    ``verify_ahead`` > 0 verification runs on the worker processes behind the map, up to that many keyframes
+    behind; results are recorded in order as their verdicts come. ``stages`` counts where the time went."""
 
-    def __init__(self, record: _RunRecord, bar: Any, *, overlap: bool) -> None:
-        self.record, self.bar, self.overlap = record, bar, overlap
+    def __init__(self, record: _RunRecord, bar: Any, *, overlap: bool, verify_ahead: int = 0) -> None:
+        self.record, self.bar, self.overlap, self.verify_ahead = record, bar, overlap, verify_ahead
+        self.stages = StageTimes()
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="lcpr-describe")
         self._waiting: tuple[list[SensorFrame], list[Frame], Future[DescribedBatch]] | None = None
+        self._stored: deque[tuple[SensorFrame, Frame, Result]] = deque()  # stored, not recorded yet
+        self._stored_keyframes = 0  # of them keyframes
+        self._pool = record.detector.verification_processes()  # its counters: the workers' share
+        self._pool_start = (0.0, 0.0) if self._pool is None else (self._pool.worker_busy_seconds,
+                                                                  self._pool.worker_cpu_seconds)
 
     @property
     def queued(self) -> int:
         """Frames handed over but not yet recorded."""
-        return 0 if self._waiting is None else len(self._waiting[0])
+        return (0 if self._waiting is None else len(self._waiting[0])) + len(self._stored)
+
+    def verify_seconds(self) -> tuple[float, float]:
+        """(wall, CPU) seconds the verification workers spent on this run's keyframes, all together."""
+        if self._pool is None:
+            return 0.0, 0.0
+        return (self._pool.worker_busy_seconds - self._pool_start[0],
+                self._pool.worker_cpu_seconds - self._pool_start[1])
 
     def add(self, frames: list[SensorFrame]) -> None:
         record = self.record
         det_frames = [to_detector_frame(frame, cameras=record.detector.config.model.num_cameras) for frame in frames]
         if record.odometry is not None:  # the detector runs on KISS-ICP's poses; the bag's stay the truth
             det_frames = [record.odometry.step(frame, det) for frame, det in zip(frames, det_frames, strict=True)]
-        described = self._worker.submit(record.detector.describe_batch, det_frames)
+        described = self._worker.submit(self._describe, det_frames)
         if self.overlap:
             self.finish()  # the batch before, stored while this one is described
         self._waiting = (frames, det_frames, described)
         if not self.overlap:
             self.finish()
 
+    def _describe(self, frames: list[Frame]) -> DescribedBatch:
+        tic = time.perf_counter()
+        try:
+            return self.record.detector.describe_batch(frames)
+        finally:
+            self.stages.describe += time.perf_counter() - tic
+
     def finish(self) -> None:
-        """Store and record the batch waiting, if any."""
+        """Store the batch waiting, if any, and record what is complete."""
         if self._waiting is None:
             return
         frames, det_frames, described = self._waiting
         self._waiting = None
-        results = self.record.detector.store_batch(described.result())
-        for frame, det_frame, result in zip(frames, det_frames, results, strict=True):
+        tic = time.perf_counter()
+        batch = described.result()
+        toc = time.perf_counter()
+        results = self.record.detector.store_batch(batch, defer_verification=self.verify_ahead > 0)
+        self.stages.network_wait += toc - tic
+        self.stages.store += time.perf_counter() - toc
+        self._stored.extend(zip(frames, det_frames, results, strict=True))
+        self._stored_keyframes += sum(r.keyframe_id is not None for r in results)
+        self._settle(keep=self.verify_ahead)
+
+    def _settle(self, *, keep: int) -> None:
+        """Wait for the oldest verdicts until at most ``keep`` keyframes are left verifying; record, in order,
+        every stored frame before the first keyframe still verifying."""
+        detector = self.record.detector
+        tic = time.perf_counter()
+        detector.finish_verification(keep=keep)
+        toc = time.perf_counter()
+        self.stages.verify_wait += toc - tic
+        complete = self._stored_keyframes - detector.verifying  # the oldest keyframes stored are finished first
+        recorded = 0
+        while self._stored:
+            frame, det_frame, result = self._stored[0]
+            if result.keyframe_id is not None:
+                if not complete:
+                    break
+                complete -= 1
+                self._stored_keyframes -= 1
+            self._stored.popleft()
             _record(frame, det_frame, result, self.record)
             if self.record.odometry is not None:
                 self.record.odometry.result(det_frame, result)
-        self.bar.update(len(frames))
-        self.bar.set_postfix(keyframes=len(self.record.stamps), refresh=False)
+            recorded += 1
+        self.stages.record += time.perf_counter() - toc
+        if recorded:
+            self.bar.update(recorded)
+            self.bar.set_postfix(keyframes=len(self.record.stamps), refresh=False)
 
     def __enter__(self) -> _Pipeline:
         return self
@@ -448,6 +543,7 @@ class _Pipeline:
         try:
             if kind is None:
                 self.finish()
+                self._settle(keep=0)
         finally:
             self._worker.shutdown(wait=True, cancel_futures=True)
 
@@ -465,6 +561,8 @@ def _record(frame: SensorFrame, det_frame: Frame, result: Result, record: _RunRe
     if record.lidar_frame is None:
         record.lidar_frame = frame.lidar_frame_id
     record.verified.append(result.loop if result.verification else None)
+    if result.verification:
+        record.verdicts.update((f"{c.query_id}-{c.match_id}", candidate_record(c)) for c in result.candidates)
     record.lcpr_ids.append([c.match_id for c in result.candidates])
     record.lcpr_dist.append([c.distance for c in result.candidates])
     record.lcpr_timings.append(dict(result.timings))

@@ -3,11 +3,16 @@
     lcpr_eval BAG [--weights FILE] [--precision P] [--runtime R] [--threads N] [--limit N] [--out DIR] ...
     lcpr_eval BAG --params-file config/lcpr.yaml [--weights FILE]      # exactly what lcpr_node would run
     lcpr_eval BAG --odometry kiss-icp                                  # KISS-ICP poses, then the back end's ATE
+    lcpr_eval BAG --workers 4                                          # 4 verification processes (default: a core each)
+    lcpr_eval BAG --verdicts-save V.json     # ... later, after a change to the verifier: --verdicts-compare V.json
 
 Builds :class:`lcpr_offline.lcpr_evaluate.EvalOptions` from the flags, or from the node's parameter file
 (:func:`lcpr_ros.params.settings_from_file`), and runs :func:`lcpr_offline.lcpr_evaluate.evaluate_bag`;
 writes report.json, pr_curve.png, latency.png, trajectory.png (and posegraph.png; backend.png with
-``--odometry kiss-icp``) into ``--out``.
+``--odometry kiss-icp``) into ``--out``. ``--verdicts-save FILE`` writes every candidate's verdict (decision,
+reason, fitness, pose, by "query-match" keyframe ids); ``--verdicts-compare FILE`` compares this run's with such
+a file, prints what differs and exits with status 1 when a decision or a reason differs or a pose moved more
+than 1 mm / 0.01 deg (:mod:`lcpr_offline.verdicts`).
 Protocols: see :mod:`lcpr_core.evaluation`.
 """
 from __future__ import annotations
@@ -41,6 +46,7 @@ from lcpr_offline.lcpr_evaluate import (  # noqa: F401 - the evaluation's API, i
     evaluate_bag,
     write_outputs,
 )
+from lcpr_offline.verdicts import keep
 from msg_tools.errors import MsgToolsError
 from msg_tools.frames import Topics
 from msg_tools.transforms import BASE_FRAME
@@ -126,7 +132,16 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="the detector's poses: the bag's odometry (default), or kiss-icp run on the bag's clouds "
                         "(the odometry extra), whose drift the back end then corrects with the verified loops: ATE "
                         "before and after against the bag's odometry, and backend.png")
+    g.add_argument("--workers", type=int, default=None,
+                   help="verification worker processes, running behind the network and the map search (the same "
+                        "verdicts as the node's immediate verification; a --params-file's verify.processes is "
+                        "the node's, not the evaluation's); 0 = in this process, each keyframe as it is stored "
+                        "(default: one per core this process may run on)")
     g.add_argument("--quiet", action="store_true", help="no progress bar")
+    g.add_argument("--verdicts-save", type=Path, default=None, metavar="FILE",
+                   help="write every candidate's verification verdict to this JSON file")
+    g.add_argument("--verdicts-compare", type=Path, default=None, metavar="FILE",
+                   help="compare every candidate's verdict with a --verdicts-save file (exit 1 when they differ)")
     g = p.add_argument_group("one configuration with the node")
     g.add_argument("--params-file", type=Path, default=None,
                    help="a node parameter file (e.g. config/lcpr.yaml): model, keyframing, matching, verification, "
@@ -182,7 +197,7 @@ def _evaluation_options(args: argparse.Namespace) -> dict[str, Any]:
                 sc_max_distance=args.sc_max_distance, limit=args.limit, warmup=args.warmup,
                 split_offset=args.split_offset, base_frame=args.base_frame, drift_seed=args.drift_seed,
                 batch=args.batch, lidar_only=args.lidar_only or args.topics == "scans",
-                odometry=args.odometry)
+                odometry=args.odometry, workers=args.workers)
 
 
 def _without_cameras(topics: Topics) -> Topics:
@@ -226,6 +241,12 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     try:
         options = options_from_args(args)
+        if (args.verdicts_save or args.verdicts_compare) and not options.verify.enabled:
+            raise ValueError("--verdicts-save / --verdicts-compare need verification, which is off here (--no-verify "
+                             "or the parameter file's verify.enabled: false)")
+        if args.verdicts_compare is not None and not args.verdicts_compare.is_file():
+            raise ValueError(f"--verdicts-compare {args.verdicts_compare}: no such file; accepted: a file written "
+                             "by --verdicts-save")
         if not options.model.imagenet or options.model.weights:
             print(f"lcpr_eval: LCPR {describe_weights(resolve_weights(options.model.weights))}", file=sys.stderr)
         report = evaluate_bag(args.bag, options, progress=not args.quiet)
@@ -241,7 +262,14 @@ def main(argv: list[str] | None = None) -> int:
     if not (report.settings["model"]["weights"] or report.settings["model"]["imagenet"]):
         print("note: LCPR ran with random weights (--seeded): its numbers are not those of a trained model")
     print("written: " + ", ".join(str(p) for p in paths))
-    return 0
+    if report.verified is None or not (args.verdicts_save or args.verdicts_compare):
+        return 0
+    try:
+        return keep(report.verified.verdicts, save_to=args.verdicts_save, compare_with=args.verdicts_compare,
+                    same_run="run on the same bag with the same options", indent="")
+    except (LcprError, ValueError, OSError) as err:
+        print(f"lcpr_eval: {err}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -56,12 +56,12 @@ from .protocols import (
     ranked_protocol,
     recall_at_full_precision,
 )
-from .report import EvaluationReport, summary_table, throughput_line, verification_table
+from .report import EvaluationReport, StageTimes, summary_table, throughput_line, verification_table
 from .results import MethodResult, MethodRun, VerifiedLoops, evaluate_method, evaluate_verified
 
 __all__ = [
     "GroundTruth", "LatencyStats", "MethodResult", "MethodRun", "OperatingPoint", "ProtocolResult", "Retrieve",
-    "EvaluationReport", "database_query_protocol", "evaluate_method", "ground_truth", "latency_stats",
+    "EvaluationReport", "StageTimes", "database_query_protocol", "evaluate_method", "ground_truth", "latency_stats",
     "online_protocol", "operating_point", "plot_latency", "plot_pr_curves", "plot_trajectory", "pr_sweep",
     "ranked_protocol", "recall_at_full_precision", "summary_table", "throughput_line", "VerifiedLoops",
     "evaluate_verified", "verification_table",

@@ -35,6 +35,43 @@ class BackendSummary(Protocol):
 
 
 @dataclass
+class StageTimes:
+    """Where an evaluation's run went, in seconds (``lcpr_eval`` prints each one's share of ``run``): the network
+    thread, the main thread's parts (they add up to about ``run``) and the verification workers."""
+
+    run: float = 0.0  # the frames read and through the detector (EvaluationReport.detect_time_s)
+    describe: float = 0.0  # the network thread: keyframes decided, preprocessed and described
+    store: float = 0.0  # main thread: matched, stored, verification handed over (search+store)
+    record: float = 0.0  # main thread: results recorded, with the Scan Context baseline
+    read_wait: float = 0.0  # main thread waiting for the bag's frames
+    network_wait: float = 0.0  # ... for the network's descriptors
+    verify_wait: float = 0.0  # ... for verdicts (and verifying the pairs of a worker that failed)
+    workers: int = 0  # verification worker processes running behind the map; 0: verified within "store"
+    verify_busy: float = 0.0  # wall seconds the workers spent verifying, all together
+    verify_cpu: float = 0.0  # their CPU seconds
+    cpu: float = 0.0  # CPU seconds of the evaluating process itself (every thread: main, network, bag reader)
+    cores: int = 0  # cores the process may run on
+
+    def text(self) -> str:
+        """One line: each stage's share of the run."""
+        run = self.run if self.run > 0 else math.nan
+
+        def pct(seconds: float) -> str:
+            return f"{100.0 * seconds / run:.0f}%"
+        if self.workers:
+            verify = (f"{self.workers} verification workers busy {100.0 * self.verify_busy / (run * self.workers):.0f}%"
+                      f" (wall {self.verify_busy:.1f} s, CPU {self.verify_cpu:.1f} s)")
+        else:
+            verify = "verification in the main thread (within search+store)"
+        busy = (f"; CPU {(self.cpu + self.verify_cpu) / run:.2f} of {self.cores} cores busy (this process "
+                f"{self.cpu:.1f} s, the workers {self.verify_cpu:.1f} s)" if self.cores else "")
+        return (f"stages (share of the {self.run:.2f} s run): network thread busy {pct(self.describe)}; {verify}; "
+                f"main thread: search+store {pct(self.store)}, recording + Scan Context {pct(self.record)}, waiting "
+                f"for the bag {pct(self.read_wait)} / the network {pct(self.network_wait)} / verification "
+                f"{pct(self.verify_wait)}{busy}")
+
+
+@dataclass
 class EvaluationReport:
     source: str  # what was evaluated (a bag path)
     settings: dict[str, Any]
@@ -46,6 +83,7 @@ class EvaluationReport:
     detect_time_s: float = 0.0  # of wall_time_s: the frames read and through the detector (then the evaluation)
     verified: VerifiedLoops | None = None  # LCPR + verification; None when verification was off
     backend: BackendSummary | None = None  # the bag's LiDAR odometry corrected by the back end; None = not run
+    stages: StageTimes | None = None  # where the run's time went; None: not measured
 
     def to_dict(self) -> dict[str, Any]:
         return _jsonable({
@@ -55,6 +93,7 @@ class EvaluationReport:
             "methods": [m.to_dict() for m in self.methods],
             "verified": None if self.verified is None else self.verified.to_dict(),
             "backend": None if self.backend is None else self.backend.to_dict(),
+            "stages": self.stages,
         })
 
     def write_json(self, path: str | os.PathLike[str]) -> None:
@@ -131,7 +170,8 @@ def summary_table(report: EvaluationReport, *, n_values: Sequence[int] = (1, 5, 
 
 def throughput_line(report: EvaluationReport) -> str:
     """Keyframes per second through the detector (the bag read and every frame processed) and where a keyframe's
-    time went (the first method's stages), beside the setup before and the evaluation after."""
+    time went (the first method's stages), beside the setup before and the evaluation after; with
+    ``report.stages``, a second line with each stage's share of the run (they overlap)."""
     keyframes = int(report.counts.get("keyframes", 0))
     if not keyframes or report.wall_time_s <= 0:
         return "throughput: no keyframe"
@@ -142,10 +182,11 @@ def throughput_line(report: EvaluationReport) -> str:
     parts = ", ".join(f"{k} {v.mean_ms:.2f}" for k, v in stages.items())
     rest = (f"the other {run - staged:.2f} s: reading the bag (waited for), frames that were not keyframes"
             if run >= staged else f"the stages overlapped by {staged - run:.2f} s (a batch described while the one "
-            "before was matched)")
-    return (f"throughput: {keyframes} keyframes in {run:.2f} s = {keyframes / run:.1f} keyframes/s (after "
+            "before was matched, verified behind them)")
+    line = (f"throughput: {keyframes} keyframes in {run:.2f} s = {keyframes / run:.1f} keyframes/s (after "
             f"{report.setup_time_s:.1f} s of setup; then {after:.1f} s of evaluation); per keyframe (mean ms) {parts}; "
             f"{rest}")
+    return line if report.stages is None else f"{line}\n{report.stages.text()}"
 
 
 def _op(point: OperatingPoint | None) -> str:

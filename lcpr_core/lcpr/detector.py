@@ -34,6 +34,12 @@ Submaps (``submap.*``, :mod:`lcpr_core.verification.submap`; "auto" by default: 
 whose cloud covers less than 180 deg of azimuth): the query's cloud is verified with its previous
 keyframes of this session stitched in by the odometry (``Frame.pose``), and each match's with its
 neighbours on both sides; the two never share a keyframe. The map keeps each keyframe's full pose.
+
+An evaluation that wants throughput rather than latency stores keyframes with
+``store_batch(batch, defer_verification=True)``: each keyframe's pairs are formed and its clouds stitched
+as it is stored (so from the map as it is then, as always), handed to the verification worker processes,
+and :meth:`LoopDetector.finish_verification` completes the results later, oldest first, with the verdicts
+an immediate verification gives.
 """
 from __future__ import annotations
 
@@ -42,6 +48,7 @@ import itertools
 import logging
 import math
 import time
+from collections import deque
 from collections.abc import Callable, Hashable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, TypedDict
@@ -66,7 +73,7 @@ from ..verification import (
     Verification,
     VerifierConfig,
 )
-from ..verification.processes import CloudRef, VerifierProcesses, shared_processes
+from ..verification.processes import CloudRef, Ticket, VerifierProcesses, shared_processes
 from ..verification.submap import build_submap, submap_rows
 from .describer import Describer, ModelConfig
 from .peers import PeerKeyframe, PeerKeyframeError, decode_peer_keyframe, encode_peer_keyframe  # noqa: F401 - lcpr_core.detector's
@@ -231,6 +238,26 @@ class DescribedBatch:
     descriptors: np.ndarray  # K x D, one row per keyframe
 
 
+@dataclass
+class _Verifying:
+    """A keyframe's candidates on their way through verification (:meth:`LoopDetector._verify_start`)."""
+
+    candidates: list[Candidate]  # "no cloud" ones settled, the others still unverified
+    pairs: list[int]  # the candidates (indices) whose pair is verified
+    verdicts: list[Verification | Exception] | None = None  # verified in this process already
+    ticket: Ticket | None = None  # else handed to these worker processes
+    pool: VerifierProcesses | None = None
+
+
+@dataclass
+class _Deferred:
+    """A stored keyframe whose verification is still to be finished (``store_batch(defer_verification=True)``)."""
+
+    result: Result
+    verifying: _Verifying
+    seconds: float  # spent on it when stored: pairs formed, clouds stitched and sent
+
+
 class LoopDetector:
     """Keyframing, description and matching against a growing descriptor map."""
 
@@ -255,6 +282,7 @@ class LoopDetector:
         self.verifier = GeometricVerifier(config.verify)
         self._prepared = PreparedCache(PREPARED_CACHE)  # by (centre id, ids stitched)
         self._processes: VerifierProcesses | None = None  # with verify.processes > 0, from shared_processes
+        self._deferred: deque[_Deferred] = deque()  # stored keyframes whose verdicts are still to come, oldest first
         self._token = next(_DETECTOR_TOKENS)  # first element of its cloud keys: shared workers keep detectors apart
         self._submap_config = config.submap  # what the prepared clouds were stitched with
         self.weights_threshold = operating_threshold(resolve_weights(config.model.weights))  # the file's, or None
@@ -339,12 +367,45 @@ class LoopDetector:
             raise
         return DescribedBatch(results, keyframes, descriptors)
 
-    def store_batch(self, batch: DescribedBatch) -> list[Result]:
+    def store_batch(self, batch: DescribedBatch, *, defer_verification: bool = False) -> list[Result]:
         """The second half of :meth:`process_batch`: each described keyframe matched, stored and verified in
-        order; the batch's results."""
+        order; the batch's results.
+
+        ``defer_verification``: each keyframe's candidates are handed to the verification worker processes
+        (``verify.processes`` > 0; else verified now) and its result comes back unverified;
+        :meth:`finish_verification` completes it. The verdicts are those of an immediate verification: the
+        pairs and their clouds are made as the keyframe is stored, from the map as it is then.
+        """
         for (frame, result), desc in zip(batch.keyframes, batch.descriptors, strict=True):
-            self._store(frame, result, desc)
+            self._store(frame, result, desc, defer=defer_verification)
         return batch.results
+
+    @property
+    def verifying(self) -> int:
+        """Keyframes stored with ``defer_verification`` whose verification is not finished yet."""
+        return len(self._deferred)
+
+    def finish_verification(self, *, keep: int = 0) -> list[Result]:
+        """Finish deferred verifications, oldest first, waiting for their verdicts, until at most ``keep`` are left
+        (0: all); the results completed (candidates with their verdicts, ``errors``, ``timings["verify"]``: the
+        seconds spent storing it plus its verification's as if alone), in the order they were stored."""
+        if isinstance(keep, bool) or not isinstance(keep, int) or keep < 0:
+            raise InvalidValueError(f"keep={keep!r}; accepted: an integer >= 0 (keyframes left unfinished)")
+        done = []
+        while len(self._deferred) > keep:
+            item = self._deferred.popleft()
+            result, verifying = item.result, item.verifying
+            result.candidates = self._verify_finish(verifying, result.errors)
+            result.timings["verify"] = item.seconds + (verifying.ticket.seconds if verifying.ticket else 0.0)
+            done.append(result)
+        return done
+
+    def verification_processes(self) -> VerifierProcesses | None:
+        """The worker processes verification runs on, started now if they are not yet (their counters tell how
+        busy they were); None when verification is off or runs in this process (``verify.processes`` 0)."""
+        if not self.config.verify.enabled or self.config.verify.processes <= 0:
+            return None
+        return self._pool()
 
     def add_peer_keyframe(self, kf: PeerKeyframe) -> Result:
         """Take a keyframe another robot's detector sent (:class:`~lcpr_core.lcpr.peers.PeerKeyframe`).
@@ -479,8 +540,9 @@ class LoopDetector:
             result.timings["network"] = share
         return descriptors
 
-    def _store(self, frame: Frame, result: Result, desc: np.ndarray) -> None:
-        """Match a described keyframe against the map before it, add it, verify its candidates."""
+    def _store(self, frame: Frame, result: Result, desc: np.ndarray, *, defer: bool = False) -> None:
+        """Match a described keyframe against the map before it, add it, verify its candidates (``defer``: hand
+        them to the workers; :meth:`finish_verification` completes the result)."""
         points = frame.points if frame.points is not None else np.zeros((0, 3), np.float32)
         tic = time.perf_counter()
         query = self.proposer.describe(KeyframeInput(desc, points, frame.stamp, frame.pose))
@@ -509,8 +571,13 @@ class LoopDetector:
             self.map.clouds.add(int(new_id), compact)
             result.timings["compact"] = time.perf_counter() - tic
             tic = time.perf_counter()
-            result.candidates = self._verify(compact, result.candidates, result.errors)
-            result.timings["verify"] = time.perf_counter() - tic
+            verifying = self._verify_start(compact, result.candidates)
+            if defer:  # finished in turn, also when it needed no worker
+                result.timings["verify"] = time.perf_counter() - tic  # so far; finish_verification adds the rest
+                self._deferred.append(_Deferred(result, verifying, result.timings["verify"]))
+            else:
+                result.candidates = self._verify_finish(verifying, result.errors)
+                result.timings["verify"] = time.perf_counter() - tic
         if self.config.up.enabled and len(walls):
             tic = time.perf_counter()
             found = estimate_up(walls, config=self.config.up)
@@ -523,8 +590,14 @@ class LoopDetector:
         A registration that raises makes that candidate "failed" and its cause is appended to ``errors``.
         With ``verify.processes`` > 0 the pairs are verified over that many worker processes (the same verdicts).
         """
+        return self._verify_finish(self._verify_start(compact, candidates), errors)
+
+    def _verify_start(self, compact: np.ndarray, candidates: list[Candidate]) -> _Verifying:
+        """The first half of :meth:`_verify`: the pairs formed and their clouds stitched from the map as it is now
+        (the query's submap: its keyframe and those before it; a match's: no row from where the query's own
+        keyframes start), then handed to the worker processes, or verified here when there are none."""
         if not candidates:
-            return candidates
+            return _Verifying(candidates, [], verdicts=[])
         if self.config.submap != self._submap_config:  # settings changed at run time
             self._submap_config = self.config.submap
             self._prepared.clear()
@@ -535,20 +608,40 @@ class LoopDetector:
         first = None if query_sub is None else query_sub.rows[0]  # the query's own keyframes start here
         query = CloudRef((self._token, query_id, "submap"), lambda: compact if query_sub is None else query_sub.xyz)
         scan_alone = CloudRef((self._token, query_id, "scan"), lambda: compact)  # pairs within the query's submap
+        # a match's submap ends at the query: keyframes stored after it never enter, verified now or later
+        after_query = None if query_row is None else query_row + 1
         pairs: list[tuple[int, CloudRef, CloudRef]] = []  # (candidate index, source, match)
         out = list(candidates)
         for k, c in enumerate(candidates):
             row = self.map.row_of(c.match_id)
             own = row is not None and query_row is not None and self._same_run(row, query_row)  # query's session
             stitched = own and first is not None and row is not None and row >= first  # a keyframe the query
-            match = self._match_cloud(c.match_id, end=first if own else None)  # stitched: scan against scan
+            # stitches: scan against scan; a match of the query's own run ends where the query's submap starts
+            match = self._match_cloud(c.match_id, end=first if own and first is not None else after_query)
             if match is None:
                 out[k] = dataclasses.replace(c, verification="no cloud")
             else:
                 pairs.append((k, scan_alone if stitched else query, match))
-        verdicts = self._verify_pairs([(source, match) for _, source, match in pairs], errors)
-        for (k, _, _), v in zip(pairs, verdicts, strict=True):
-            c = candidates[k]
+        refs = [(source, match) for _, source, match in pairs]
+        if self.config.verify.processes > 0 and refs:
+            pool = self._pool()
+            return _Verifying(out, [k for k, _, _ in pairs], ticket=pool.submit(refs), pool=pool)
+        return _Verifying(out, [k for k, _, _ in pairs], verdicts=self._verify_pairs(refs))
+
+    def _verify_finish(self, verifying: _Verifying, errors: list[str]) -> list[Candidate]:
+        """The second half of :meth:`_verify`: the verdicts (waited for) applied to the candidates."""
+        verdicts = verifying.verdicts
+        if verifying.ticket is not None and verifying.pool is not None:
+            pool = verifying.pool
+            before = pool.fallbacks
+            verdicts = pool.collect(verifying.ticket)
+            if pool.fallbacks > before:
+                errors.append(f"a verification worker process failed: {pool.fallbacks - before} pairs were "
+                              f"verified in the detector's process instead (verify.processes={pool.processes})")
+        assert verdicts is not None
+        out = verifying.candidates
+        for k, v in zip(verifying.pairs, verdicts, strict=True):
+            c = out[k]
             if isinstance(v, Exception):  # a bad pair must not cost the keyframe
                 errors.append(f"verification of {c.query_id} against {c.match_id}: {type(v).__name__}: {v}")
                 v = Verification(False, "failed", np.eye(4), 0.0)
@@ -556,20 +649,17 @@ class LoopDetector:
                                          covariance=v.covariance, verification=v.reason)
         return out
 
-    def _verify_pairs(self, pairs: list[tuple[CloudRef, CloudRef]], errors: list[str]
-                      ) -> list[Verification | Exception]:
-        """(source, match) pairs' verdicts, an exception in the place of a pair that raised: over the worker
-        processes when ``verify.processes`` asks for them, else here with the cache of prepared match clouds."""
-        wanted = self.config.verify.processes
-        if wanted > 0 and pairs:
-            if self._processes is None or self._processes.config != self.config.verify:
-                self._processes = shared_processes(self.config.verify, processes=wanted, cache=PREPARED_CACHE)
-            before = self._processes.fallbacks
-            verdicts = self._processes.verify(pairs)
-            if self._processes.fallbacks > before:
-                errors.append(f"a verification worker process failed: {self._processes.fallbacks - before} pairs were "
-                              f"verified in the detector's process instead (verify.processes={wanted})")
-            return verdicts
+    def _pool(self) -> VerifierProcesses:
+        """The worker processes of the verify settings now (shared with other detectors of the same settings)."""
+        if self._processes is None or self._processes.config != self.config.verify \
+                or self._processes.processes == 0:
+            self._processes = shared_processes(self.config.verify, processes=self.config.verify.processes,
+                                               cache=PREPARED_CACHE)
+        return self._processes
+
+    def _verify_pairs(self, pairs: list[tuple[CloudRef, CloudRef]]) -> list[Verification | Exception]:
+        """(source, match) pairs' verdicts here, an exception in the place of a pair that raised, with the cache of
+        prepared match clouds (``verify.processes`` 0)."""
         self._close_processes()
         sources: dict[Hashable, PreparedCloud] = {}
         out: list[Verification | Exception] = []

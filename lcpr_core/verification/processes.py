@@ -2,14 +2,18 @@
 
     pool = VerifierProcesses(VerifierConfig(), processes=2)
     verdicts = pool.verify([(source, match), ...])   # CloudRef pairs; the same verdicts as in one process
+    ticket = pool.submit([(source, match), ...])     # or handed over now, collected later (an evaluation
+    verdicts = pool.collect(ticket)                  # keeps the workers busy while it stores the next keyframes)
     pool.close()
 
 Each worker keeps its own cache of prepared clouds (the last ``cache`` match clouds, the last few
 sources), and the parent mirrors which keys each worker holds, so a cloud crosses the pipe (and a
 submap is stitched) only when the worker it goes to lacks it. Pairs are spread to balance the work:
-a pair costs a registration, plus a preparation where its worker lacks a cloud. Registration is
-deterministic, so a verdict does not depend on the worker that made it. A worker that dies or answers
-with something unexpected is replaced by verifying in this process (``fallbacks`` counts them).
+a pair costs a registration, plus a preparation where its worker lacks a cloud, and a worker still busy
+with earlier tickets starts later. A worker answers its requests in the order it got them. Registration
+is deterministic, so a verdict does not depend on the worker that made it, nor on when it is collected.
+A worker that dies or answers with something unexpected is replaced by verifying in this process when
+the ticket is collected (``fallbacks`` counts the pairs).
 """
 from __future__ import annotations
 
@@ -21,9 +25,9 @@ import threading
 import time
 import traceback
 import weakref
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Callable, Hashable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
@@ -38,6 +42,9 @@ RESPAWNS = 3  # workers replaced after one died, in the life of a pool; then the
 _ONE_THREAD = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 SOURCE_CACHE = 4  # sources (query clouds) each worker keeps: a keyframe's submap and its scan alone, and the last ones
 _PREPARE_COST = 0.8  # preparing a cloud, in pair registrations (benchmarks/tools/verify_cost.py)
+#: requests a worker may have unanswered: more waits for its oldest answer first. Its answers (about 1 KiB a pair)
+#: then always fit the socket's buffer, so a worker never stops reading because its answers go unread.
+QUEUED = 4
 
 
 @dataclass(frozen=True)
@@ -66,6 +73,22 @@ class _Worker:
         self.conn.send((config, cache))
         # the keys its caches hold, touched and filled as the worker's own (the same LRU rule)
         self.sources, self.matches = LruCache[bool](SOURCE_CACHE), LruCache[bool](cache)
+        self.sent: deque[tuple[Ticket, list[int], float]] = deque()  # requests unanswered: (ticket, pairs, cost)
+        self.backlog = 0.0  # their cost, in pair registrations
+
+
+@dataclass(eq=False)
+class Ticket:
+    """Pairs handed to the workers by :meth:`VerifierProcesses.submit`; :meth:`VerifierProcesses.collect` gives
+    their verdicts."""
+
+    pairs: list[tuple[CloudRef, CloudRef]]
+    verdicts: list[Verification | Exception | None]  # filled in as the workers answer; None: not yet
+    waiting: set[int] = field(default_factory=set)  # the workers whose answer is still to come
+    #: wall seconds of its verification as if it ran alone: the slowest worker's share (not the time it waited
+    #: behind earlier tickets), plus the pairs verified in the caller's process
+    seconds: float = 0.0
+    collected: bool = False
 
 
 class VerifierProcesses:
@@ -77,6 +100,7 @@ class VerifierProcesses:
         self.config = config
         self.fallbacks = 0  # pairs verified in this process because a worker failed
         self.worker_cpu_seconds = 0.0  # CPU time the workers spent on requests, all of them together
+        self.worker_busy_seconds = 0.0  # wall time the workers spent on requests, all of them together
         self._local = GeometricVerifier(config)
         self._lock = threading.Lock()
         self._cache, self._respawns = cache, RESPAWNS
@@ -95,50 +119,70 @@ class VerifierProcesses:
     def verify(self, pairs: Sequence[tuple[CloudRef, CloudRef]]) -> list[Verification | Exception]:
         """Each (source, match) pair's verdict, in order; an exception raised verifying a pair is returned in its
         place (the caller decides what a failed pair means)."""
+        return self.collect(self.submit(pairs))
+
+    def submit(self, pairs: Sequence[tuple[CloudRef, CloudRef]]) -> Ticket:
+        """Hand the pairs to the workers and return at once (their clouds are loaded now, where a worker lacks
+        them); :meth:`collect` gives the verdicts, those :meth:`verify` would have given. Tickets may be
+        collected in any order; each worker works through its requests in the order they were submitted."""
         with self._lock:
             for w, worker in enumerate(self._workers):
                 if worker is None and self._respawns > 0:
                     self._respawns -= 1
                     self._workers[w] = _Worker(self.config, self._cache)
-            plan = self._assign(pairs)
-            out: list[Verification | Exception | None] = [None] * len(pairs)
-            sent = []
-            for w, indices in plan.items():
-                worker = self._workers[w]
-                assert worker is not None
+            self._drain()  # answers already there: the workers' backlogs as they are now
+            ticket = Ticket(list(pairs), [None] * len(pairs))
+            for w, (indices, cost) in self._assign(ticket.pairs).items():
+                while (worker := self._workers[w]) is not None and len(worker.sent) >= QUEUED:
+                    self._receive(w)
+                if worker is None:  # it failed meanwhile: its pairs are verified here when collected
+                    continue
                 request, given = [], []
                 for i in indices:
                     try:
-                        request.append(self._request(worker, pairs[i]))
+                        request.append(self._request(worker, ticket.pairs[i]))
                         given.append(i)
                     except Exception as err:  # noqa: BLE001 - a cloud that cannot be loaded fails its pair only
-                        out[i] = err
+                        ticket.verdicts[i] = err
                 try:
                     worker.conn.send(request)
-                    sent.append((w, given))
                 except (OSError, ValueError, EOFError):
                     self._drop(w)
-            for w, indices in sent:
-                worker = self._workers[w]
-                assert worker is not None
-                try:
-                    answers, cpu_seconds = worker.conn.recv()
-                except (OSError, EOFError, ValueError, TypeError):
-                    self._drop(w)
                     continue
-                self.worker_cpu_seconds += cpu_seconds
-                for i, answer in zip(indices, answers, strict=True):
-                    out[i] = self._settle(worker, pairs[i], answer)
-            for i, verdict in enumerate(out):
+                worker.sent.append((ticket, given, cost))
+                worker.backlog += cost
+                ticket.waiting.add(w)
+            return ticket
+
+    def collect(self, ticket: Ticket) -> list[Verification | Exception]:
+        """The verdicts of a :meth:`submit`'s pairs, in order, waiting for the workers' answers; the pairs of a
+        worker that failed are verified here."""
+        with self._lock:
+            if ticket.collected:
+                raise VerificationError("this ticket's verdicts were collected already; accepted: a ticket once")
+            while ticket.waiting:
+                w = min(ticket.waiting)
+                self._receive(w)  # the worker's next answer: this ticket's or an earlier one's
+                worker = self._workers[w] if w < len(self._workers) else None
+                if worker is None or not worker.sent:  # nothing more will come from it
+                    ticket.waiting.discard(w)
+            tic = time.perf_counter()
+            for i, verdict in enumerate(ticket.verdicts):
                 if verdict is None:  # its worker failed, or it lacked a cloud it should have had
                     self.fallbacks += 1
-                    out[i] = self._verify_here(*pairs[i])
-            return [v for v in out if v is not None]
+                    ticket.verdicts[i] = self._verify_here(*ticket.pairs[i])
+            ticket.seconds += time.perf_counter() - tic
+            ticket.collected = True
+            return [v for v in ticket.verdicts if v is not None]
 
     def close(self) -> None:
-        """Stop the workers (also done when this object is collected or the interpreter exits)."""
-        self._finalizer()
-        self._workers.clear()
+        """Stop the workers (also done when this object is collected or the interpreter exits); the pairs of tickets
+        not yet collected are then verified in this process when they are."""
+        with self._lock:
+            for w in range(len(self._workers)):
+                self._forget(w)
+            self._finalizer()
+            self._workers.clear()
 
     def __enter__(self) -> VerifierProcesses:
         return self
@@ -147,13 +191,14 @@ class VerifierProcesses:
         self.close()
 
     # -- the parent's side ---------------------------------------------------------------------
-    def _assign(self, pairs: Sequence[tuple[CloudRef, CloudRef]]) -> dict[int, list[int]]:
-        """Worker index -> the pairs it verifies: greedily the worker that finishes the pair soonest, counting a
-        registration per pair and a preparation for each cloud the worker lacks."""
+    def _assign(self, pairs: Sequence[tuple[CloudRef, CloudRef]]) -> dict[int, tuple[list[int], float]]:
+        """Worker index -> (the pairs it verifies, their cost): greedily the worker that finishes the pair soonest,
+        counting its backlog of earlier tickets, a registration per pair and a preparation for each cloud the
+        worker lacks."""
         alive = {w: worker for w, worker in enumerate(self._workers) if worker is not None}
-        load = dict.fromkeys(alive, 0.0)
+        load = {w: worker.backlog for w, worker in alive.items()}
         sources: dict[int, set[Hashable]] = {w: set() for w in alive}  # sources given to a worker in this plan
-        plan: dict[int, list[int]] = {}
+        plan: dict[int, tuple[list[int], float]] = {}
         for i, (source, match) in enumerate(pairs):
             if not alive:
                 break
@@ -161,9 +206,10 @@ class VerifierProcesses:
                 (source.key not in worker.sources and source.key not in sources[w]) + (match.key not in worker.matches))
                 for w, worker in alive.items()}
             w = min(finish, key=lambda w: (finish[w], w))
+            indices, cost = plan.get(w, ([], 0.0))
+            plan[w] = ([*indices, i], cost + finish[w] - load[w])
             load[w] = finish[w]
             sources[w].add(source.key)
-            plan.setdefault(w, []).append(i)
         return plan
 
     def _request(self, worker: _Worker, pair: tuple[CloudRef, CloudRef]) -> tuple[tuple[Hashable, Any], ...]:
@@ -201,8 +247,51 @@ class VerifierProcesses:
         except Exception as err:  # noqa: BLE001 - returned in the pair's place, as a worker's would be
             return err
 
+    def _receive(self, w: int) -> None:
+        """Worker ``w``'s next answer, waited for, given to the ticket of its oldest request."""
+        worker = self._workers[w] if w < len(self._workers) else None
+        if worker is None or not worker.sent:  # gone (its tickets were told), or nothing asked of it
+            return
+        try:
+            answers, cpu_seconds, wall_seconds = worker.conn.recv()
+            ticket, indices, cost = worker.sent[0]
+            if len(answers) != len(indices):
+                raise ValueError(f"{len(answers)} answers to {len(indices)} pairs")
+        except (OSError, EOFError, ValueError, TypeError):
+            self._drop(w)
+            return
+        worker.sent.popleft()
+        worker.backlog = max(worker.backlog - cost, 0.0) if worker.sent else 0.0
+        self.worker_cpu_seconds += cpu_seconds
+        self.worker_busy_seconds += wall_seconds
+        ticket.seconds = max(ticket.seconds, wall_seconds)
+        ticket.waiting.discard(w)
+        for i, answer in zip(indices, answers, strict=True):
+            ticket.verdicts[i] = self._settle(worker, ticket.pairs[i], answer)
+
+    def _drain(self) -> None:
+        """Take the answers that have arrived, without waiting (a worker whose answers pile up unread would stop
+        reading requests)."""
+        for w, worker in enumerate(self._workers):
+            try:
+                while worker is not None and worker.sent and worker.conn.poll(0):
+                    self._receive(w)
+                    worker = self._workers[w]
+            except (OSError, EOFError, ValueError):
+                self._drop(w)
+
+    def _forget(self, w: int) -> None:
+        """Worker ``w``'s unanswered requests are left to the caller's process (verified when collected)."""
+        worker = self._workers[w]
+        if worker is not None:
+            for ticket, _, _ in worker.sent:
+                ticket.waiting.discard(w)
+            worker.sent.clear()
+            worker.backlog = 0.0
+
     def _drop(self, w: int) -> None:
         worker = self._workers[w]
+        self._forget(w)
         self._workers[w] = None
         if worker is not None:
             _stop([worker])
@@ -246,7 +335,7 @@ def _stop(workers: list[_Worker | None]) -> None:
 
 def _serve(conn: Connection) -> None:
     """A worker's loop: (config, cache size) first; then a list of pairs in, (a list of ("ok", Verification) /
-    ("error", text) / ("missing", key), the request's CPU seconds) out; None stops it."""
+    ("error", text) / ("missing", key), the request's CPU seconds, its wall seconds) out; None stops it."""
     try:
         config, cache = conn.recv()
     except (EOFError, OSError):
@@ -260,7 +349,7 @@ def _serve(conn: Connection) -> None:
             return
         if request is None:
             return
-        cpu = time.process_time()
+        cpu, wall = time.process_time(), time.perf_counter()
         answers: list[tuple[str, Any]] = []
         for (skey, sxyz), (mkey, mxyz) in request:
             try:
@@ -274,7 +363,7 @@ def _serve(conn: Connection) -> None:
                 answers.append(("error", f"{type(err).__name__}: {err}"
                                 if str(err) else traceback.format_exception_only(err)[-1].strip()))
         try:
-            conn.send((answers, time.process_time() - cpu))
+            conn.send((answers, time.process_time() - cpu, time.perf_counter() - wall))
         except (OSError, ValueError):
             return
 

@@ -534,3 +534,24 @@ def test_the_evaluation_describes_sixteen_frames_per_network_call_on_a_gpu_and_o
     assert frames_per_call(EvalOptions(batch=4, model=ModelConfig(device="cuda:0"))) == 4
     with pytest.raises(InvalidValueError, match=r"batch=-2; it must be >= 1 frame, or 0 \(auto\)"):
         EvalOptions(batch=-2)
+
+
+@pytest.mark.slow
+def test_lcpr_eval_saves_every_candidate_s_verdict_and_compares_a_later_run_with_them(
+        loop_bag: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from lcpr_offline.verdicts import load, save
+    from lcpr_ros.evaluate import main
+
+    args = [str(loop_bag), "--out", str(tmp_path / "eval"), "--no-scan-context", *SMALL]
+    assert main([*args, "--verdicts-save", str(tmp_path / "v.json")]) == 0
+    kept = load(tmp_path / "v.json")
+    report = json.loads((tmp_path / "eval" / "report.json").read_text())
+    assert kept and len(kept) >= report["verified"]["loops"]  # every candidate, not only each keyframe's loop
+    assert main([*args, "--verdicts-compare", str(tmp_path / "v.json")]) == 0
+    assert "verdicts compared: 0 differences" in capsys.readouterr().out
+    name = sorted(kept)[0]
+    save(tmp_path / "changed.json", {**kept, name: dict(kept[name], accepted=not kept[name]["accepted"])})
+    assert main([*args, "--verdicts-compare", str(tmp_path / "changed.json")]) == 1
+    assert f"verdicts compared: 1 differences\n  {name} (vs " in capsys.readouterr().out
+    assert main([*args, "--no-verify", "--verdicts-save", str(tmp_path / "w.json")]) == 2
+    assert "need verification, which is off here" in capsys.readouterr().err

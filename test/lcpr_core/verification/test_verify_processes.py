@@ -99,6 +99,68 @@ def test_a_worker_that_dies_is_stood_in_for_by_the_caller_then_replaced_with_the
         pool.close()
 
 
+def test_tickets_submitted_together_and_collected_in_any_order_get_the_verdicts_of_one_process(clouds):
+    verifier = GeometricVerifier(CONFIG)
+    query = verifier.prepare(clouds["query"])
+    alone = [verifier.verify_prepared(query, verifier.prepare(clouds[m])) for m in MATCHES]
+    counted = Counted(clouds)
+    with VerifierProcesses(CONFIG, processes=2) as pool:
+        tickets = [pool.submit([(counted.ref("query"), counted.ref(m)) for m in MATCHES[k:]]) for k in range(3)]
+        answers = [pool.collect(t) for t in reversed(tickets)][::-1]
+        assert pool.fallbacks == 0 and pool.worker_busy_seconds > 0 and all(t.seconds > 0 for t in tickets)
+        with pytest.raises(VerificationError, match="collected already"):
+            pool.collect(tickets[0])
+    for k, got in enumerate(answers):
+        assert all(isinstance(v, Verification) and same_verdict(v, a) for v, a in zip(got, alone[k:], strict=True))
+
+
+def test_a_worker_is_never_asked_more_than_a_few_requests_ahead_so_its_answers_never_fill_the_socket(clouds):
+    from lcpr_core.verification.processes import QUEUED
+
+    verifier = GeometricVerifier(CONFIG)
+    expected = verifier.verify_prepared(verifier.prepare(clouds["query"]), verifier.prepare(clouds["near0"]))
+    refs = Counted(clouds)
+    with VerifierProcesses(CONFIG, processes=1) as pool:
+        tickets = []
+        for _ in range(3 * QUEUED):
+            tickets.append(pool.submit([(refs.ref("query"), refs.ref("near0"))] * 2))
+            worker = pool._workers[0]
+            assert worker is not None and len(worker.sent) <= QUEUED
+        answers = [v for t in tickets for v in pool.collect(t)]
+        assert pool.fallbacks == 0
+    assert len(answers) == 6 * QUEUED and all(isinstance(v, Verification) and same_verdict(v, expected)
+                                              for v in answers)
+
+
+def test_a_worker_that_dies_with_tickets_in_flight_leaves_their_pairs_to_the_caller_with_the_same_verdicts(clouds):
+    verifier = GeometricVerifier(CONFIG)
+    expected = [verifier.verify_prepared(verifier.prepare(clouds["query"]), verifier.prepare(clouds[m]))
+                for m in MATCHES]
+    pool = VerifierProcesses(CONFIG, processes=1)
+    try:
+        refs = Counted(clouds)
+        tickets = [pool.submit([(refs.ref("query"), refs.ref(m))]) for m in MATCHES]
+        worker = pool._workers[0]
+        assert worker is not None
+        worker.process.kill()
+        worker.process.wait(timeout=10)
+        answers = [pool.collect(t)[0] for t in tickets]
+        assert 1 <= pool.fallbacks <= len(MATCHES)  # the ones it had not answered yet
+        assert all(isinstance(v, Verification) and same_verdict(v, a) for v, a in zip(answers, expected, strict=True))
+        later = pool.collect(pool.submit([(refs.ref("query"), refs.ref("near0"))]))  # a new worker
+        assert pool._workers[0] is not None and pool._workers[0] is not worker and isinstance(later[0], Verification)
+    finally:
+        pool.close()
+
+
+def test_tickets_still_in_flight_when_the_pool_is_closed_are_verified_by_the_caller(clouds):
+    pool = VerifierProcesses(CONFIG, processes=2)
+    ticket = pool.submit([(CloudRef("q", lambda: clouds["query"]), CloudRef("m", lambda: clouds["near0"]))])
+    pool.close()
+    (answer,) = pool.collect(ticket)
+    assert isinstance(answer, Verification) and answer.accepted and pool.processes == 0
+
+
 @pytest.mark.parametrize("processes", [0, -1, 1.5, True, "2"])
 def test_a_bad_number_of_processes_is_refused_naming_it(processes):
     with pytest.raises(VerificationError, match="processes=.*accepted"):
@@ -135,9 +197,9 @@ def test_a_worker_answers_a_pair_that_raises_with_the_error_and_goes_on_to_the_n
     parent.send((CONFIG, 4))
     parent.send([(("q", np.asarray(cloud, np.float64)), ("m", np.zeros((10, 2)))),  # 20 numbers: not N x 3
                  (("q", None), ("m2", np.asarray(cloud, np.float64)))])
-    answers, cpu_seconds = parent.recv()
+    answers, cpu_seconds, wall_seconds = parent.recv()
     parent.send(None)
     worker.join(timeout=10)
     assert answers[0][0] == "error" and "ValueError" in answers[0][1]
-    assert answers[1][0] == "ok" and answers[1][1].accepted and cpu_seconds >= 0.0
+    assert answers[1][0] == "ok" and answers[1][1].accepted and cpu_seconds >= 0.0 and wall_seconds >= 0.0
     assert not worker.is_alive()
