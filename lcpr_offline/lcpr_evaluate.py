@@ -81,6 +81,7 @@ from lcpr_core.loop_report import PublishedLoop, pose_graph_proof
 from lcpr_core.posegraph import DriftModel
 from lcpr_core.pretrained import effective_max_distance
 from lcpr_core.scan_context import ScanContextConfig, ScanContextMatcher, rank_database
+from lcpr_core.up import UpConfig
 from lcpr_core.verification import SubmapConfig, VerifierConfig
 from msg_tools.bags import read_frames, read_static_transforms
 from msg_tools.errors import MsgToolsError
@@ -322,6 +323,8 @@ def evaluate_bag(
             model=opts.model, keyframe=opts.keyframe,
             match=MatchConfig(top_k=max(N_VALUES), max_distance=COLLECT_ALL, exclude_recent_s=opts.exclude_recent_s),
             verify=opts.verify, submap=opts.submap,
+            # each keyframe's up from its walls is for the back end: measured only when it runs (kiss-icp)
+            up=UpConfig(enabled=opts.odometry == "kiss-icp"),
         )
         sc_cfg = None if opts.scan_context is None else dataclasses.replace(
             opts.scan_context, exclude_recent_s=opts.exclude_recent_s)

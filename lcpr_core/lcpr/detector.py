@@ -571,7 +571,7 @@ class LoopDetector:
             self.map.clouds.add(int(new_id), compact)
             result.timings["compact"] = time.perf_counter() - tic
             tic = time.perf_counter()
-            verifying = self._verify_start(compact, result.candidates)
+            verifying = self._verify_start(compact, result.candidates, together=defer)
             if defer:  # finished in turn, also when it needed no worker
                 result.timings["verify"] = time.perf_counter() - tic  # so far; finish_verification adds the rest
                 self._deferred.append(_Deferred(result, verifying, result.timings["verify"]))
@@ -592,7 +592,8 @@ class LoopDetector:
         """
         return self._verify_finish(self._verify_start(compact, candidates), errors)
 
-    def _verify_start(self, compact: np.ndarray, candidates: list[Candidate]) -> _Verifying:
+    def _verify_start(self, compact: np.ndarray, candidates: list[Candidate], *, together: bool = False
+                      ) -> _Verifying:
         """The first half of :meth:`_verify`: the pairs formed and their clouds stitched from the map as it is now
         (the query's submap: its keyframe and those before it; a match's: no row from where the query's own
         keyframes start), then handed to the worker processes, or verified here when there are none."""
@@ -625,7 +626,8 @@ class LoopDetector:
         refs = [(source, match) for _, source, match in pairs]
         if self.config.verify.processes > 0 and refs:
             pool = self._pool()
-            return _Verifying(out, [k for k, _, _ in pairs], ticket=pool.submit(refs), pool=pool)
+            ticket = pool.submit(refs, together=together)  # together: throughput, a query prepared once
+            return _Verifying(out, [k for k, _, _ in pairs], ticket=ticket, pool=pool)
         return _Verifying(out, [k for k, _, _ in pairs], verdicts=self._verify_pairs(refs))
 
     def _verify_finish(self, verifying: _Verifying, errors: list[str]) -> list[Candidate]:

@@ -114,6 +114,22 @@ def test_tickets_submitted_together_and_collected_in_any_order_get_the_verdicts_
         assert all(isinstance(v, Verification) and same_verdict(v, a) for v, a in zip(got, alone[k:], strict=True))
 
 
+def test_pairs_submitted_together_go_to_one_worker_so_their_query_is_prepared_once(clouds):
+    verifier = GeometricVerifier(CONFIG)
+    query = verifier.prepare(clouds["query"])
+    alone = [verifier.verify_prepared(query, verifier.prepare(clouds[m])) for m in MATCHES]
+    counted = Counted(clouds)
+    with VerifierProcesses(CONFIG, processes=2) as pool:
+        first = pool.submit([(counted.ref("query"), counted.ref(m)) for m in MATCHES], together=True)
+        assert len(first.waiting) == 1  # one worker has them all
+        second = pool.submit([(counted.ref("far0"), counted.ref(m)) for m in MATCHES[:2]], together=True)
+        assert second.waiting and second.waiting != first.waiting  # the idle worker takes the next keyframe
+        got = pool.collect(first)
+        pool.collect(second)
+    assert counted.loads["query"] == 1
+    assert all(isinstance(v, Verification) and same_verdict(v, a) for v, a in zip(got, alone, strict=True))
+
+
 def test_a_worker_is_never_asked_more_than_a_few_requests_ahead_so_its_answers_never_fill_the_socket(clouds):
     from lcpr_core.verification.processes import QUEUED
 
