@@ -51,10 +51,15 @@ class Counted:
 MATCHES = ("near0", "far0", "near1", "far1", "near2")
 
 
-def test_verdicts_over_two_processes_are_those_of_one_process_and_each_cloud_crosses_once(clouds):
+def one_by_one(clouds: dict[str, np.ndarray]) -> list[Verification]:
+    """The query's verdict against each of MATCHES, in one process: what the workers must give."""
     verifier = GeometricVerifier(CONFIG)
     query = verifier.prepare(clouds["query"])
-    alone = [verifier.verify_prepared(query, verifier.prepare(clouds[m])) for m in MATCHES]
+    return [verifier.verify_prepared(query, verifier.prepare(clouds[m])) for m in MATCHES]
+
+
+def test_verdicts_over_two_processes_are_those_of_one_process_and_each_cloud_crosses_once(clouds):
+    alone = one_by_one(clouds)
     assert [v.accepted for v in alone] == [True, False, True, False, True]  # the case tells right from wrong
     counted = Counted(clouds)
     with VerifierProcesses(CONFIG, processes=2) as pool:
@@ -100,9 +105,7 @@ def test_a_worker_that_dies_is_stood_in_for_by_the_caller_then_replaced_with_the
 
 
 def test_tickets_submitted_together_and_collected_in_any_order_get_the_verdicts_of_one_process(clouds):
-    verifier = GeometricVerifier(CONFIG)
-    query = verifier.prepare(clouds["query"])
-    alone = [verifier.verify_prepared(query, verifier.prepare(clouds[m])) for m in MATCHES]
+    alone = one_by_one(clouds)
     counted = Counted(clouds)
     with VerifierProcesses(CONFIG, processes=2) as pool:
         tickets = [pool.submit([(counted.ref("query"), counted.ref(m)) for m in MATCHES[k:]]) for k in range(3)]
@@ -115,9 +118,7 @@ def test_tickets_submitted_together_and_collected_in_any_order_get_the_verdicts_
 
 
 def test_pairs_submitted_together_go_to_one_worker_so_their_query_is_prepared_once(clouds):
-    verifier = GeometricVerifier(CONFIG)
-    query = verifier.prepare(clouds["query"])
-    alone = [verifier.verify_prepared(query, verifier.prepare(clouds[m])) for m in MATCHES]
+    alone = one_by_one(clouds)
     counted = Counted(clouds)
     with VerifierProcesses(CONFIG, processes=2) as pool:
         first = pool.submit([(counted.ref("query"), counted.ref(m)) for m in MATCHES], together=True)
