@@ -265,9 +265,10 @@ class VerifierProcesses:
         try:
             answers, cpu_seconds, wall_seconds = worker.conn.recv()
             ticket, indices, cost = worker.sent[0]
-            if len(answers) != len(indices):
-                raise ValueError(f"{len(answers)} answers to {len(indices)} pairs")
+            understood = len(answers) == len(indices)  # else it answered something else: no longer to be trusted
         except (OSError, EOFError, ValueError, TypeError):
+            understood = False
+        if not understood:
             self._drop(w)
             return
         worker.sent.popleft()
