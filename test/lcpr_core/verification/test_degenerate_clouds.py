@@ -1,6 +1,8 @@
 """Clouds no registration can pin down are refused while being prepared: a reason, never an exception or a search."""
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -51,7 +53,7 @@ def test_worker_processes_answer_a_degenerate_cloud_with_its_reason_not_an_excep
     verifier = GeometricVerifier(CONFIG)
     clouds = {"place": verifier.compact(place), "plane": verifier.compact(DEGENERATE["a ground plane"][0]),
               "empty": np.zeros((0, 3))}
-    ref = {k: CloudRef(k, lambda k=k: clouds[k]) for k in clouds}
+    ref = {k: CloudRef(k, functools.partial(clouds.__getitem__, k)) for k in clouds}
     with VerifierProcesses(CONFIG, processes=2) as pool:
         verdicts = pool.verify([(ref["place"], ref["plane"]), (ref["plane"], ref["place"]),
                                 (ref["place"], ref["empty"])])
