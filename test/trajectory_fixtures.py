@@ -32,3 +32,15 @@ def square_laps(*, side: float = 25.0, step: float = 2.0, laps: int = 4) -> tupl
         (cx, cy), (dx, dy) = corners[k], heading[k]
         poses.append(pose(cx + dx * u, cy + dy * u, yaw=90.0 * k))
     return np.stack(poses), per_lap
+
+
+def quarter_lap_apart(*, moved: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Two runs round one 40 m square in 0.5 m steps: the first from a corner, the second a quarter lap ahead with
+    drifting odometry (``DriftModel(seed, 0.2 deg/m)``) kept in an odometry frame moved by ``moved``^-1 (the
+    second run's frame in the first's is ``moved``). (first's truth, second's truth, second's odometry), N x 4 x 4."""
+    from lcpr_core.posegraph import DriftModel, drift_odometry
+
+    first, per_lap = square_laps(side=40.0, step=0.5, laps=1)
+    second = np.roll(first, -per_lap // 4, axis=0)
+    drifted, _ = drift_odometry(second, model=DriftModel(seed=seed, yaw_deg_per_m=0.2))
+    return first, second, np.linalg.inv(moved) @ drifted

@@ -24,14 +24,13 @@ from std_msgs.msg import Float64MultiArray, String  # noqa: E402
 
 from backend_ros.config import settings_from  # noqa: E402
 from backend_ros.node import BackendNode  # noqa: E402
-from lcpr_core.posegraph import DriftModel, drift_odometry  # noqa: E402
 from msg_tools.geometry import matrix_to_quaternion  # noqa: E402
 from msg_tools.transforms import pose_to_odometry  # noqa: E402
 from ros_common.errors import ConfigError  # noqa: E402
 from ros_common.harness import spinning, wait_until  # noqa: E402
 from ros_common.qos import CANDIDATE_QOS, LATCHED_QOS, RELIABLE_INPUT_QOS  # noqa: E402
 from ros_common.tables import COVARIANCE_COLUMNS, POSE_COLUMNS, SESSION_COLUMNS, sessions_msg, table_msg  # noqa: E402
-from trajectory_fixtures import pose, square_laps  # noqa: E402
+from trajectory_fixtures import pose, quarter_lap_apart  # noqa: E402
 
 T0, DT = 1_700_000_000.0, 0.1
 LOOP_COV = np.diag([0.05**2] * 3 + [math.radians(0.5) ** 2] * 3)
@@ -45,10 +44,7 @@ class Fleet:
     robot2 a quarter lap ahead, drifting, in an odometry frame moved by MOVED^-1."""
 
     def __init__(self) -> None:
-        self.truth1, per_lap = square_laps(side=40.0, step=0.5, laps=1)
-        self.truth2 = np.roll(self.truth1, -per_lap // 4, axis=0)
-        drifted, _ = drift_odometry(self.truth2, model=DriftModel(seed=3, yaw_deg_per_m=0.2))
-        self.odom2 = np.linalg.inv(MOVED) @ drifted
+        self.truth1, self.truth2, self.odom2 = quarter_lap_apart(moved=MOVED, seed=3)
         self.stamps = T0 + DT * np.arange(len(self.truth1))
 
     def loop_row(self, i: int) -> list[float]:

@@ -25,14 +25,13 @@ from std_msgs.msg import Bool, Float64MultiArray, String  # noqa: E402
 
 from backend_ros.node import BackendNode  # noqa: E402
 from lcpr_core.backend import PoseGraphBackend  # noqa: E402
-from lcpr_core.posegraph import DriftModel, drift_odometry  # noqa: E402
 from msg_tools.geometry import matrix_to_quaternion  # noqa: E402
 from msg_tools.transforms import odometry_to_pose, pose_to_odometry  # noqa: E402
 from ros_common.errors import ConfigError, MapLoadError  # noqa: E402
 from ros_common.harness import spinning, wait_until  # noqa: E402
 from ros_common.qos import CANDIDATE_QOS, LATCHED_QOS, RELIABLE_INPUT_QOS  # noqa: E402
 from ros_common.tables import COVARIANCE_COLUMNS, POSE_COLUMNS, SESSION_COLUMNS, sessions_msg, table_msg  # noqa: E402
-from trajectory_fixtures import pose, square_laps  # noqa: E402
+from trajectory_fixtures import pose, quarter_lap_apart, square_laps  # noqa: E402
 
 T_PRIOR, T_RUN = 1_700_000_000.0, 1_700_090_000.0  # the prior's stamps, this run's (a day later)
 DT = 0.1
@@ -46,10 +45,7 @@ class Drives:
     another corner, drifting, in an odometry frame moved by MOVED^-1."""
 
     def __init__(self) -> None:
-        self.truth_a, per_lap = square_laps(side=40.0, step=0.5, laps=1)
-        self.truth_b = np.roll(self.truth_a, -per_lap // 4, axis=0)
-        drifted, _ = drift_odometry(self.truth_b, model=DriftModel(seed=2, yaw_deg_per_m=0.2))
-        self.odom_b = np.linalg.inv(MOVED) @ drifted
+        self.truth_a, self.truth_b, self.odom_b = quarter_lap_apart(moved=MOVED, seed=2)
         self.stamps_a = T_PRIOR + DT * np.arange(len(self.truth_a))
         self.stamps_b = T_RUN + DT * np.arange(len(self.truth_b))
 
