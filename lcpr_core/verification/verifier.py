@@ -307,12 +307,10 @@ class GeometricVerifier:
         """
         cfg = self.config
         if searches is None:
-            searches = tuple(  # type: ignore[assignment]  # two of them
-                (points, *_near(points, seen_by, cfg)) for seen_by, points in (
-                    (match, transform_points(query.xyz[::_stride(len(query), cfg.overlap_points)], match_T_query)),
-                    (query, transform_points(match.xyz[::_stride(len(match), cfg.overlap_points)],
-                                             np.linalg.inv(match_T_query)))))
-        assert searches is not None
+            T, sample = match_T_query, cfg.overlap_points
+            q_in_m = transform_points(query.xyz[::_stride(len(query), sample)], T)
+            m_in_q = transform_points(match.xyz[::_stride(len(match), sample)], np.linalg.inv(T))
+            searches = (q_in_m, *_near(q_in_m, match, cfg)), (m_in_q, *_near(m_in_q, query, cfg))
         shares = []
         for seen_by, (points, _, near) in zip((match, query), searches, strict=True):
             bad, seen = seen_by.free_space().contradicting(points, excused=near)
